@@ -1,0 +1,70 @@
+"""The stage contract: what a stage's ``run(ctx)`` receives from the engine.
+
+A stage package ``stages/<name>/`` exposes ``Config`` (a pydantic model, ``extra="forbid"``,
+frozen) and ``run(ctx: StageContext) -> None``. It reads its inputs from ``ctx.inputs`` (read-only,
+committed artifacts of the stages it ``needs``), writes every output under ``ctx.out`` (a fresh
+staging directory), and never reads another stage's config. When ``run`` returns, the engine
+commits ``ctx.out`` atomically; when it raises, the staging directory is discarded.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+from pydantic import BaseModel
+
+from pipeline.progress import Progress
+
+
+@dataclass(frozen=True)
+class StageContext:
+    """Everything a stage may use. Built by the runner; stages never construct it in production."""
+
+    stage: str  # the stage's name in pipeline.yaml
+    config: BaseModel  # the stage's own validated config section
+    inputs: Mapping[str, Path]  # needed stage name -> its committed artifact directory (read-only)
+    out: Path  # fresh staging directory; everything the stage produces goes here
+    seed: int  # ``config.seed`` when the config has one, else 0
+    device: str = "cpu"  # torch device string; never part of a key
+    jobs: int = 1  # how many workers ``map`` may use
+    profile: str = "default"
+    log: logging.Logger = field(default_factory=lambda: logging.getLogger("stage"))
+    mapper: Callable[..., list] | None = None  # set by the executor; see ``map``
+    progress_factory: Callable[..., Progress] | None = None
+
+    def progress(self, total: int | None, desc: str, unit: str = "it") -> Progress:
+        """A progress bar for long work inside the stage; use as a context manager, call ``update(n)``."""
+        if self.progress_factory is None:
+            return Progress(total=total, desc=desc, unit=unit, enabled=False)
+        return self.progress_factory(total=total, desc=desc, unit=unit)
+
+    def map(self, fn: Callable[[Any], Any], items: Sequence[Any] | Iterable[Any], desc: str = "") -> list:
+        """``[fn(x) for x in items]`` fanned out on the active executor (processes or Ray tasks).
+
+        ``fn`` must be a module-level function and items/results picklable. Results keep order.
+        """
+        items = list(items)
+        if self.mapper is None or self.jobs <= 1 or len(items) <= 1:
+            out = []
+            with self.progress(len(items), desc or fn.__name__) as bar:
+                for x in items:
+                    out.append(fn(x))
+                    bar.update(1)
+            return out
+        return self.mapper(fn, items, jobs=self.jobs, desc=desc or fn.__name__, progress=self.progress)
+
+    def input(self, name: str) -> Path:
+        """The artifact directory of the needed stage ``name``, with a clear error if it is not an input."""
+        try:
+            return self.inputs[name]
+        except KeyError:
+            raise KeyError(f"stage {self.stage!r} has no input {name!r}; its inputs are {sorted(self.inputs)}") from None
+
+    def write_metrics(self, metrics: Mapping[str, Any]) -> Path:
+        """Write ``metrics.json`` into the staging dir (sweeps build their results table from it)."""
+        path = self.out / "metrics.json"
+        path.write_text(json.dumps(dict(metrics), indent=2, sort_keys=True, default=float) + "\n")
+        return path
