@@ -1,0 +1,122 @@
+"""Run one node: lock its key, recheck the store, run the stage into a staging dir, commit.
+
+``execute_node`` is module-level and takes only plain data, so the local process pool and Ray
+tasks call the very same function.
+"""
+from __future__ import annotations
+
+import importlib
+import logging
+import random
+import shutil
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+from pipeline.context import StageContext
+from pipeline.progress import Progress
+from pipeline.store import Store
+
+
+class StageFailed(Exception):
+    """A stage's run(ctx) raised; carries the stage, key, and where its log was kept."""
+
+    def __init__(self, stage: str, key: str, error: str, log_path: Path | None):
+        self.stage, self.key, self.error, self.log_path = stage, key, error, log_path
+        super().__init__(f"stage {stage!r} ({key[:12]}) failed: {error}" + (f"\n  log: {log_path}" if log_path else ""))
+
+
+def _seed_everything(seed: int) -> None:
+    random.seed(seed)
+    try:
+        import numpy as np
+
+        np.random.seed(seed % 2**32)
+    except ImportError:
+        pass
+    torch = sys.modules.get("torch")  # seeded when the stage uses it; importing it here costs seconds
+    if torch is not None:
+        torch.manual_seed(seed)
+
+
+def _stage_logger(stage: str, key: str, log_file: Path) -> tuple[logging.Logger, logging.Handler]:
+    log = logging.getLogger(f"stage.{stage}.{key[:12]}")
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    fh = logging.FileHandler(log_file)
+    fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    log.addHandler(fh)
+    if not any(isinstance(h, logging.StreamHandler) and not isinstance(h, logging.FileHandler) for h in log.handlers):
+        sh = logging.StreamHandler(sys.stderr)
+        sh.setFormatter(logging.Formatter(f"  [{stage}] %(message)s"))
+        log.addHandler(sh)
+    return log, fh
+
+
+def execute_node(p: dict[str, Any]) -> dict[str, Any]:
+    """Run the node described by payload ``p`` unless its key is (by now) committed.
+
+    Returns ``{stage, key, action: ran|cached, duration_s}``; raises StageFailed.
+    """
+    for r in p["roots"]:
+        if r not in sys.path:
+            sys.path.insert(0, r)
+    store = Store(p["store_root"])
+    stage, key = p["stage"], p["key"]
+    t0 = time.perf_counter()
+    with store.lock(key):
+        look = store.lookup(stage, key)
+        if look.state == "ok" and not p["force"]:
+            store.write_ref(p["label"], stage, key, p["key_inputs"])
+            return {"stage": stage, "key": key, "action": "cached", "duration_s": 0.0,
+                    "note": "committed by another run while this one waited"}
+        mod = importlib.import_module(p["module"])
+        config = mod.Config.model_validate(p["config"])
+        staging = store.staging(stage, key)
+        log, handler = _stage_logger(stage, key, staging / "log.txt")
+        from pipeline.executors import mapper_for
+
+        ctx = StageContext(
+            stage=stage,
+            config=config,
+            inputs={n: Path(v) for n, v in p["inputs"].items()},
+            out=staging,
+            seed=p["seed"],
+            device=p["device"],
+            jobs=p["jobs"],
+            profile=p["profile"],
+            log=log,
+            mapper=mapper_for(p["executor"]),
+            progress_factory=lambda total, desc, unit: Progress(total=total, desc=f"{stage}: {desc}", unit=unit),
+        )
+        _seed_everything(p["seed"])
+        try:
+            log.info("running %s (%s) with %s", stage, key[:12], p["config"])
+            mod.run(ctx)
+            log.info("finished in %.1f s", time.perf_counter() - t0)
+        except BaseException as e:
+            log.error("failed: %s\n%s", e, traceback.format_exc())
+            handler.close()
+            log.removeHandler(handler)
+            kept = store.root / "runs" / f"{p['run_id']}-{stage}-{key[:12]}.log"
+            try:
+                shutil.copyfile(staging / "log.txt", kept)
+            except OSError:
+                kept = None
+            shutil.rmtree(staging, ignore_errors=True)
+            if isinstance(e, (KeyboardInterrupt, SystemExit)):
+                raise
+            raise StageFailed(stage, key, f"{e.__class__.__name__}: {e}", kept) from e
+        handler.close()
+        log.removeHandler(handler)
+        duration = time.perf_counter() - t0
+        if p["force"]:
+            store.replace(stage, key)
+        store.commit(staging, stage, key, p["key_inputs"], extra={
+            "duration_s": round(duration, 3), "run_id": p["run_id"], "profile": p["profile"],
+            "label": p["label"], "device": p["device"], "module": p["module"],
+        })
+        store.write_ref(p["label"], stage, key, p["key_inputs"])
+    return {"stage": stage, "key": key, "action": "ran", "duration_s": round(duration, 3)}

@@ -1,0 +1,59 @@
+"""The local executor: nodes in-process, or a spawn-based process pool for independent nodes."""
+from __future__ import annotations
+
+import multiprocessing as mp
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from typing import Any, Callable, Sequence
+
+from pipeline.execute import execute_node
+
+
+def pool_map(fn: Callable[[Any], Any], items: Sequence[Any], jobs: int, desc: str, progress) -> list:
+    """``[fn(x) for x in items]`` on ``jobs`` spawned processes, results in order, with a progress bar.
+
+    Spawn (not fork): simulators and torch threads do not survive a fork reliably.
+    """
+    out: list[Any] = [None] * len(items)
+    with progress(len(items), desc, "it") as bar, ProcessPoolExecutor(
+        max_workers=min(jobs, len(items)), mp_context=mp.get_context("spawn")
+    ) as pool:
+        futures = {pool.submit(fn, x): i for i, x in enumerate(items)}
+        pending = set(futures)
+        while pending:
+            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for f in finished:
+                out[futures[f]] = f.result()
+                bar.update(1)
+    return out
+
+
+class LocalExecutor:
+    """Runs a wave of ready nodes: one at a time in this process (the stage may use ``jobs``
+    workers for its own ``ctx.map``), or, for several independent nodes and ``jobs > 1``, one
+    node per pool worker."""
+
+    name = "local"
+
+    def __init__(self, jobs: int):
+        self.jobs = jobs
+
+    def run_wave(self, payloads: list[dict], on_done: Callable[[dict, dict | None, BaseException | None], None]) -> None:
+        if self.jobs <= 1 or len(payloads) <= 1:
+            for p in payloads:
+                try:
+                    on_done(p, execute_node(p), None)
+                except Exception as e:  # noqa: BLE001 - reported by the runner
+                    on_done(p, None, e)
+            return
+        for p in payloads:
+            p["jobs"] = 1  # the pool already uses the cores
+        with ProcessPoolExecutor(max_workers=min(self.jobs, len(payloads)), mp_context=mp.get_context("spawn")) as pool:
+            futures = {pool.submit(execute_node, p): p for p in payloads}
+            for f in futures:
+                try:
+                    on_done(futures[f], f.result(), None)
+                except Exception as e:  # noqa: BLE001
+                    on_done(futures[f], None, e)
+
+    def close(self) -> None:
+        pass

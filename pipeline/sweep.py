@@ -1,0 +1,107 @@
+"""Sweeps: expand axes into points, plan them together, and tabulate each point's metrics."""
+from __future__ import annotations
+
+import csv
+import io
+import itertools
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import blake3
+
+from pipeline.errors import PipelineError
+from pipeline.plan import Node, Project, deep_merge, parse_set
+from pipeline.store import write_json_atomic
+
+
+@dataclass
+class Point:
+    values: dict[str, Any]  # axis path -> value
+    overrides: dict[str, dict[str, Any]]
+    label: str
+    nodes: list[Node]
+
+    @property
+    def last(self) -> Node:
+        return self.nodes[-1]
+
+
+def expand(project: Project, name: str, profile: str | None, sets: dict, until: str | None) -> tuple[list[Point], str]:
+    """Every point of sweep ``name`` as planned nodes, and the sweep's last stage."""
+    if name not in project.spec.sweeps:
+        raise PipelineError(f"sweep {name!r}: unknown sweep; known: {', '.join(project.spec.sweeps) or '(none)'}")
+    sw = project.spec.sweeps[name]
+    last = until or sw.until or project.order[-1]
+    if last not in project.needs:
+        raise PipelineError(f"--until: unknown stage {last!r}; known stages: {', '.join(project.order)}")
+    axes = list(sw.axes.items())
+    axis_overrides = parse_set([f"{path}=x" for path, _ in axes])  # shape only, validated below
+    project.check_overrides(axis_overrides, f"sweeps.{name}.axes")
+    points = []
+    for combo in itertools.product(*(vals for _, vals in axes)):
+        values = {path: v for (path, _), v in zip(axes, combo)}
+        over: dict[str, dict[str, Any]] = {}
+        for path, v in values.items():
+            stage, *rest = path.split(".")
+            d = over.setdefault(stage, {})
+            for p in rest[:-1]:
+                d = d.setdefault(p, {})
+            d[rest[-1]] = v
+        merged = deep_merge(sets, over)
+        label = f"sweep:{name}:" + ",".join(f"{k}={v}" for k, v in values.items())
+        nodes = project.plan([last], profile, merged, label)
+        points.append(Point(values, merged, label, nodes))
+    return points, last
+
+
+def _scalars(d: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(d, dict):
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(_scalars(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    if isinstance(d, (int, float, str, bool)) or d is None:
+        return {prefix: d}
+    return {}
+
+
+def results_table(project: Project, name: str, points: list[Point]) -> Path:
+    """Write results.{json,csv,md} for the sweep from each point's last-stage metrics.json."""
+    rows = []
+    for pt in points:
+        node = pt.last
+        mpath = project.store.path(node.stage, node.key) / "metrics.json"
+        try:
+            metrics = _scalars(json.loads(mpath.read_text()))
+        except (OSError, ValueError):
+            metrics = {}
+        rows.append({**{k: v for k, v in pt.values.items()}, **metrics, "key": node.short})
+    cols: list[str] = []
+    for r in rows:
+        cols.extend(c for c in r if c not in cols)
+    digest = blake3.blake3("".join(pt.last.key for pt in points).encode()).hexdigest()[:12]
+    out = project.store.root / "sweeps" / name / digest
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "results.json", {"sweep": name, "columns": cols, "rows": rows})
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=cols)
+    w.writeheader()
+    w.writerows(rows)
+    (out / "results.csv").write_text(buf.getvalue())
+    (out / "results.md").write_text(markdown_table(cols, rows))
+    return out
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return "" if v is None else str(v)
+
+
+def markdown_table(cols: list[str], rows: list[dict]) -> str:
+    lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
+    for r in rows:
+        lines.append("| " + " | ".join(_fmt(r.get(c)) for c in cols) + " |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,82 @@
+"""Crash safety, corrupted manifests, concurrent runs, failing stages, gc."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from collections import Counter
+
+ALL = ["collect", "tokenize", "train_wm", "goals", "rl", "evaluate"]
+
+
+def _manifests(ws) -> dict[str, list]:
+    return {s: sorted((ws.store / s).glob("*/*/manifest.json")) for s in ALL}
+
+
+def test_sigkill_mid_write_leaves_no_manifest_and_next_run_completes(ws):
+    ws.cli("run", "--until", "train_wm")
+    before = {s: [p.read_bytes() for p in ms] for s, ms in _manifests(ws).items()}
+    marker = ws.root / "marker"
+    proc = ws.popen("run", TEST_SLEEP_STAGE="goals", TEST_SLEEP="60", TEST_MARKER=marker)
+    deadline = time.time() + 60
+    while not marker.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.time() < deadline
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    after = _manifests(ws)
+    assert after["goals"] == [] and after["rl"] == [] and after["evaluate"] == []
+    assert {s: [p.read_bytes() for p in after[s]] for s in ("collect", "tokenize", "train_wm")} == {
+        s: before[s] for s in ("collect", "tokenize", "train_wm")}
+    assert list((ws.store / "tmp").glob("goals-*"))  # only staging garbage was left
+    ws.reset_log()
+    st = ws.cli("status").stdout
+    assert "goals" in st and "missing" in st
+    ws.cli("run")
+    assert ws.executions() == ["goals", "rl", "evaluate"]
+    gc = ws.cli("gc").stdout
+    assert "goals-" in gc and not list((ws.store / "tmp").glob("goals-*"))
+    assert all(_manifests(ws)[s] for s in ALL)  # gc kept every referenced artifact
+
+
+def test_truncated_or_invalid_manifest_is_reported_and_rerun(ws):
+    ws.cli("run")
+    m = _manifests(ws)["goals"][0]
+    m.write_text(m.read_text()[:40])
+    st = ws.cli("status").stdout
+    assert "goals" in st and "invalid artifact" in st and "unreadable manifest" in st
+    ws.reset_log()
+    ws.cli("run")
+    assert ws.executions() == ["goals"]  # same key, so descendants stay cached
+    m = _manifests(ws)["rl"][0]
+    data = json.loads(m.read_text())
+    data["files"]["result.json"]["size"] += 1
+    m.write_text(json.dumps(data))
+    assert "has " in ws.cli("status").stdout
+    ws.reset_log()
+    ws.cli("run")
+    assert ws.executions() == ["rl"]
+
+
+def test_two_concurrent_runs_execute_each_key_once(ws):
+    a = ws.popen("run", TEST_SLEEP_STAGE="*", TEST_SLEEP="0.4")
+    b = ws.popen("run", TEST_SLEEP_STAGE="*", TEST_SLEEP="0.4")
+    outs = [p.communicate(timeout=120) for p in (a, b)]
+    assert a.returncode == 0 and b.returncode == 0, outs
+    assert Counter(ws.executions()) == {s: 1 for s in ALL}
+    assert all(len(ms) == 1 for ms in _manifests(ws).values())
+
+
+def test_failing_stage_names_itself_keeps_its_log_and_commits_nothing(ws):
+    r = ws.cli("run", "--set", "rl.fail=true", check=False)
+    assert r.returncode == 1
+    assert "stage 'rl'" in r.stderr and "rl was told to fail" in r.stderr
+    assert "evaluate" in r.stderr and "skipped" in r.stderr
+    assert _manifests(ws)["rl"] == [] and _manifests(ws)["evaluate"] == []
+    logs = list((ws.store / "runs").glob("*-rl-*.log"))
+    assert logs and "rl was told to fail" in logs[0].read_text()
+    assert not list((ws.store / "tmp").glob("rl-*"))
+    rec = json.loads(sorted((ws.store / "runs").glob("*.json"))[-1].read_text())
+    assert rec["status"] == "failed"

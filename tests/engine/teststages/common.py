@@ -1,0 +1,46 @@
+"""What every test stage does: combine its inputs, write outputs and metrics, log its execution."""
+from __future__ import annotations
+
+import json
+import os
+import time
+
+from pydantic import BaseModel, ConfigDict
+
+
+class Config(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    value: int = 1
+    seed: int = 0
+    reward: str = "wm"
+    fail: bool = False
+    shards: int = 0  # > 0: fan out work with ctx.map
+
+
+def square(x: int) -> int:
+    return x * x
+
+
+def run_stage(ctx) -> None:
+    cfg = ctx.config
+    log = os.environ.get("TEST_EXEC_LOG")
+    if log:
+        with open(log, "a") as f:
+            f.write(f"{ctx.stage} {os.getpid()}\n")
+    inputs = {name: json.loads((path / "result.json").read_text()) for name, path in sorted(ctx.inputs.items())}
+    # Sleeping is driven by the environment, not the config, so a killed run and its rerun share keys.
+    if os.environ.get("TEST_SLEEP_STAGE") in (ctx.stage, "*"):
+        (ctx.out / "partial.bin").write_bytes(b"x" * 1024)
+        marker = os.environ.get("TEST_MARKER")
+        if marker:
+            open(marker, "w").close()
+        time.sleep(float(os.environ.get("TEST_SLEEP", "30")))
+    if cfg.fail:
+        raise RuntimeError(f"{ctx.stage} was told to fail")
+    shards = ctx.map(square, range(cfg.shards)) if cfg.shards else []
+    total = cfg.value + sum(v["total"] for v in inputs.values())
+    ctx.log.info("total %d", total)
+    result = {"stage": ctx.stage, "total": total, "seed": ctx.seed, "reward": cfg.reward, "shards": shards,
+              "inputs": sorted(inputs)}
+    (ctx.out / "result.json").write_text(json.dumps(result, sort_keys=True))
+    ctx.write_metrics({"total": total, "score": total * 10 + ctx.seed, "reward": cfg.reward})

@@ -1,0 +1,6 @@
+"""Test stage 'train_wm'."""
+from tests.engine.teststages.common import Config, run_stage
+
+
+def run(ctx):
+    run_stage(ctx)
