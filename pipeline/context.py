@@ -27,7 +27,8 @@ class StageContext:
     config: BaseModel  # the stage's own validated config section
     inputs: Mapping[str, Path]  # needed stage name -> its committed artifact directory (read-only)
     out: Path  # fresh staging directory; everything the stage produces goes here
-    seed: int  # ``config.seed`` when the config has one, else 0
+    seed: int  # ``config.seed`` when the config has one, else 0; the engine has already seeded
+    # ``random``, ``numpy`` and (if the stage module imported it) ``torch`` with it
     device: str = "cpu"  # torch device string; never part of a key
     jobs: int = 1  # how many workers ``map`` may use
     profile: str = "default"

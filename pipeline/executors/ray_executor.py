@@ -14,7 +14,7 @@ def _ray():
     try:
         import ray
     except ImportError:
-        raise PipelineError("--executor ray needs the optional extra: pip install '.[ray]'") from None
+        raise PipelineError("--executor ray needs the optional extra: pip install 'ray[default]==2.60.0'") from None
     return ray
 
 

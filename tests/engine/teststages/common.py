@@ -15,6 +15,7 @@ class Config(BaseModel):
     reward: str = "wm"
     fail: bool = False
     shards: int = 0  # > 0: fan out work with ctx.map
+    blob_mb: int = 0  # > 0: also write an output of this many MiB (engine-overhead benchmark)
 
 
 def square(x: int) -> int:
@@ -42,5 +43,10 @@ def run_stage(ctx) -> None:
     ctx.log.info("total %d", total)
     result = {"stage": ctx.stage, "total": total, "seed": ctx.seed, "reward": cfg.reward, "shards": shards,
               "inputs": sorted(inputs)}
+    if cfg.blob_mb:
+        with open(ctx.out / "blob.bin", "wb") as f:
+            chunk = os.urandom(1 << 20)
+            for _ in range(cfg.blob_mb):
+                f.write(chunk)
     (ctx.out / "result.json").write_text(json.dumps(result, sort_keys=True))
     ctx.write_metrics({"total": total, "score": total * 10 + ctx.seed, "reward": cfg.reward})
