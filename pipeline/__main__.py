@@ -128,7 +128,7 @@ def cmd_status(project: Project, args) -> int:
 
 
 def cmd_sweep(project: Project, args, argv) -> int:
-    from pipeline.sweep import expand, results_table
+    from pipeline.sweep import expand, results_table, run_report
 
     profile, sets = _prepare(project, args)
     points, last = expand(project, args.name, profile, sets, args.until)
@@ -150,6 +150,9 @@ def cmd_sweep(project: Project, args, argv) -> int:
         return 1
     out = results_table(project, args.name, points)
     print((out / "results.md").read_text())
+    report = run_report(project, args.name, points, out)
+    if report is not None:
+        say(f"sweep {args.name}: report in {report}")
     say(f"sweep {args.name}: {len(points)} points up to {last}; table in {out}/results.{{md,csv,json}}")
     return 0
 

@@ -28,6 +28,7 @@ class SweepSpec(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     axes: dict[str, list[Any]] = Field(description="e.g. {'rl.reward': [wm, rule], 'rl.seed': [0, 1]}")
     until: str | None = Field(None, description="last stage of every point (default: the last stage)")
+    report: str | None = Field(None, description="'module:function' called with the points after the table is written")
     description: str = ""
 
     @field_validator("axes")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import importlib
 import io
 import itertools
 import json
@@ -92,6 +93,21 @@ def results_table(project: Project, name: str, points: list[Point]) -> Path:
     (out / "results.csv").write_text(buf.getvalue())
     (out / "results.md").write_text(markdown_table(cols, rows))
     return out
+
+
+def run_report(project: Project, name: str, points: list[Point], out: Path) -> Path | None:
+    """Call the sweep's ``report`` hook (``'module:function'``) with every point's values and artifacts."""
+    hook = project.spec.sweeps[name].report
+    if hook is None:
+        return None
+    mod_name, _, fn_name = hook.partition(":")
+    try:
+        fn = getattr(importlib.import_module(mod_name), fn_name)
+    except (ImportError, AttributeError) as e:
+        raise PipelineError(f"sweeps.{name}.report: cannot load {hook!r} ({e})") from None
+    pts = [{"values": pt.values, "label": pt.label,
+            "artifacts": {n.stage: project.store.path(n.stage, n.key) for n in pt.nodes}} for pt in points]
+    return fn(points=pts, out=out)
 
 
 def _fmt(v: Any) -> str:

@@ -124,6 +124,8 @@ def test_sweep_runs_shared_ancestors_once_and_tabulates_twelve_points(ws):
         (r, s) for r in ["wm", "rule", "embedding", "proxy"] for s in [0, 1, 2]}
     assert all(r["score"] == r["total"] * 10 for r in table["rows"])  # evaluate's own seed stays 0
     assert "| rl.reward | rl.seed |" in out.stdout
+    report = (tables[0].parent / "report.txt").read_text().splitlines()
+    assert len(report) == 12 and all(line.endswith(" 55") for line in report)  # the hook saw every point
     ws.reset_log()
     again = ws.cli("sweep", "rewards")
     assert ws.executions() == [] and again.returncode == 0

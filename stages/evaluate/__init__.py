@@ -1,0 +1,91 @@
+"""evaluate: success of the trained policies back in the simulator, in-domain and out-of-domain,
+with the paper's table layouts, figures and rollout GIFs.
+
+Each policy the rl stage produced (the behaviour-cloned ``sft`` policy and the ``ppo`` policy
+trained with ``rl.reward``) runs in ManiSkill with the task's own success check: in-domain (the
+training scenes, initial states never used in collection) and out-of-domain (the catalog's held-out
+scenes: unseen objects and unseen object-container pairs), plus any ``extra_scenes``. Success rates
+carry their episode counts and 95% Wilson intervals. Episodes fan out with ``ctx.map`` (processes,
+or Ray tasks under ``--executor ray``).
+
+Inputs:
+    collect -- scene catalog and split (scenes.json), which scenes were trained on
+    tokenize -- the tokenizer (the policy's observation function)
+    train_wm -- text embeddings (instructions), the action WM (extreme-action figure), its split
+    rl -- sft_policy.zip, policy.zip, snapshots/, metrics.json (reward module, tasks),
+          training.png, reward_diagnostics.png
+
+Outputs:
+    results.jsonl          one line per evaluated episode (policy, task, scene, split, seed, success, steps)
+    metrics.json           success/<policy>/<task|all>/<split>{,_lo,_hi,_n} and the run's settings
+    report.md, report.html Table 1 layout (rows: methods; columns: IND/OOD x tasks), Table 2 when the
+                           policy is multi-task, success vs training wall time (Fig. 2), reward
+                           curves (Fig. 3), rollout GIFs (Figs. 4-5), extreme actions (Fig. 9)
+    *.png, *.gif           the figures the report shows
+
+Key includes:
+    this config (episode counts, horizon, seeds, extra scenes: their content, not a file path) and
+    the keys of collect, tokenize, train_wm and rl. Adding evaluation scenes reruns only evaluate.
+
+Toy profile:
+    2 episodes per (policy, task, split), 1 snapshot episode, horizon 20.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from stages.evaluate.scenes import ExtraScene, load_extra_scenes
+
+
+class Config(BaseModel):
+    """evaluate stage configuration (defaults sized for the ``small`` profile)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    seed: int = Field(0, description="base of the evaluation episodes' seeds (kept far from collection seeds)")
+    episodes: int = Field(20, ge=1, description="episodes per (policy, task, split)")
+    max_steps: int = Field(80, ge=1, description="episode horizon in the simulator")
+    policies: list[Literal["sft", "ppo"]] = Field(["sft", "ppo"], min_length=1, description="which rl outputs to evaluate")
+    splits: list[Literal["ind", "ood", "extra"]] = Field(["ind", "ood", "extra"], min_length=1)
+    snapshot_episodes: int = Field(4, ge=0, description="episodes per (snapshot, split) for success vs training time")
+    extra_scenes: list[ExtraScene] = Field([], description="more OOD scenes (a list, or a path to a YAML list)")
+    videos: bool = Field(True, description="GIF of one IND and one OOD episode per policy")
+    image_size: int = Field(64, ge=16, description="camera size; must match collect's")
+    robot_mesh: Literal["lowpoly", "stock"] = "lowpoly"
+
+    @field_validator("extra_scenes", mode="before")
+    @classmethod
+    def _read_file(cls, v):
+        return load_extra_scenes(v)
+
+
+SEED_BASE = 1_000_000  # collection seeds are small; evaluation states are new ones
+
+
+def run(ctx) -> None:
+    from stages.evaluate.jobs import build_jobs, snapshot_jobs
+    from stages.evaluate.episodes import run_job
+    from stages.evaluate.writeup import write_everything
+
+    cfg: Config = ctx.config
+    rl_dir = ctx.input("rl")
+    rl_metrics = json.loads((rl_dir / "metrics.json").read_text())
+    jobs = build_jobs(ctx, cfg, rl_metrics)
+    snaps = snapshot_jobs(ctx, cfg, rl_metrics)
+    ctx.log.info("evaluate: %d jobs (%d episodes) + %d snapshot jobs", len(jobs), sum(len(j.seeds) for j in jobs), len(snaps))
+    results = [r for rs in ctx.map(run_job, jobs + snaps, desc="evaluate episodes") for r in rs]
+    with open(ctx.out / "results.jsonl", "w") as f:
+        for r in results:
+            f.write(json.dumps({k: v for k, v in r.items() if k != "frames"}) + "\n")
+    metrics = write_everything(ctx, cfg, rl_metrics, results)
+    for name in ("training.png", "reward_diagnostics.png"):
+        if (rl_dir / name).is_file():
+            shutil.copyfile(rl_dir / name, ctx.out / name)
+    ctx.write_metrics(metrics)
+
+
+__all__ = ["Config", "run", "SEED_BASE"]

@@ -1,0 +1,90 @@
+"""Which policy runs in which scene with which seeds: the evaluation plan as ``Job``s."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from stages.evaluate.episodes import Job
+
+
+def scenes_by_split(ctx, cfg, tasks: list[str]) -> dict[tuple[str, str], list[dict]]:
+    """(task, split) -> scene dicts: IND = scenes trained on; OOD = the catalog's held-out scenes; extra."""
+    from stages.collect.catalog import read_scenes_json
+    from stages.evaluate.scenes import to_scene
+    from stages.goals.environments import list_environments
+
+    catalog = read_scenes_json(ctx.input("collect") / "scenes.json")
+    envs = list_environments(ctx.input("collect"), tasks)
+    tables = {s.table.name: s.table.color for s in catalog.values()}
+    extra = [to_scene(e, i, tables) for i, e in enumerate(cfg.extra_scenes)]
+    out = {}
+    for task in tasks:
+        out[(task, "ind")] = [catalog[e.scene_id].to_dict() for e in envs if e.task == task and e.split == "ind"]
+        out[(task, "ood")] = [s.to_dict() for s in sorted(catalog.values(), key=lambda s: s.scene_id) if s.split == "ood"]
+        out[(task, "extra")] = extra
+    return out
+
+
+def _text(ctx) -> dict:
+    from stages.train_wm.rollout import TEXT_EMBEDDINGS
+
+    return json.loads((ctx.input("train_wm") / TEXT_EMBEDDINGS).read_text())
+
+
+def _spread(policy: str, path: Path, task: str, split: str, scenes: list[dict], n: int, seed0: int, ctx, cfg,
+            text: dict, record: bool) -> list[Job]:
+    """``n`` episodes round-robin over ``scenes``, one Job per scene."""
+    seeds: dict[str, list[int]] = {}
+    for i in range(n):
+        seeds.setdefault(scenes[i % len(scenes)]["scene_id"], []).append(seed0 + i)
+    by_id = {s["scene_id"]: s for s in scenes}
+    jobs = []
+    for k, (sid, ss) in enumerate(sorted(seeds.items())):
+        jobs.append(Job(policy, str(path), str(ctx.input("tokenize")), text, task, by_id[sid], split, ss,
+                        cfg.max_steps, cfg.image_size, cfg.robot_mesh, record=[ss[0]] if record and k == 0 else [],
+                        device=ctx.device))
+    return jobs
+
+
+def build_jobs(ctx, cfg, rl_metrics: dict) -> list[Job]:
+    from stages.evaluate import SEED_BASE
+
+    tasks = list(rl_metrics["tasks"])
+    scenes = scenes_by_split(ctx, cfg, tasks)
+    text = _text(ctx)
+    files = {"sft": "sft_policy.zip", "ppo": "policy.zip"}
+    jobs = []
+    for policy in cfg.policies:
+        path = ctx.input("rl") / files[policy]
+        for split in cfg.splits:
+            recorded = False
+            for ti, task in enumerate(tasks):
+                if not scenes[(task, split)]:
+                    continue
+                record = cfg.videos and split in ("ind", "ood") and not recorded
+                recorded = recorded or record
+                seed0 = SEED_BASE + cfg.seed * 100_000 + ti * 10_000 + ("ind", "ood", "extra").index(split) * 1_000
+                jobs += _spread(policy, path, task, split, scenes[(task, split)], cfg.episodes, seed0, ctx, cfg, text, record)
+    return jobs
+
+
+def snapshot_jobs(ctx, cfg, rl_metrics: dict) -> list[Job]:
+    """Each PPO snapshot on IND and OOD (few episodes, tasks pooled): success vs training time."""
+    from stages.evaluate import SEED_BASE
+
+    index = ctx.input("rl") / "snapshots" / "index.json"
+    if not cfg.snapshot_episodes or not index.is_file():
+        return []
+    tasks = list(rl_metrics["tasks"])
+    scenes = scenes_by_split(ctx, cfg, tasks)
+    text = _text(ctx)
+    jobs = []
+    for snap in json.loads(index.read_text()):
+        for split in ("ind", "ood"):
+            for ti, task in enumerate(tasks):
+                n = cfg.snapshot_episodes // len(tasks) + (ti < cfg.snapshot_episodes % len(tasks))
+                if n and scenes[(task, split)]:
+                    seed0 = SEED_BASE + 50_000 + cfg.seed * 100_000 + ti * 1_000 + (split == "ood") * 500
+                    jobs += _spread(f"ppo@{snap['timesteps']}", ctx.input("rl") / snap["path"], task, split,
+                                    scenes[(task, split)], n, seed0, ctx, cfg, text, False)
+    return jobs

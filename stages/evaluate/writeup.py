@@ -1,0 +1,123 @@
+"""Turn evaluated episodes into metrics, tables, figures, GIFs and the report."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import torch
+
+from stages.evaluate.report import (SPLIT_NAMES, html_table, image_section, markdown_table, plot_success_vs_time,
+                                    strip_figure, success_table, tally, write_gif, write_report)
+from stages.evaluate.stats import wilson
+
+METHODS = {
+    "rule": "PPO in ManiSkill (rule reward)",
+    "wm": "PPO in world model (WM reward, ours)",
+    "embedding": "PPO in world model (embedding reward head)",
+    "proxy": "PPO in world model (proxy reward model)",
+}
+
+
+def method_label(policy: str, reward: str) -> str:
+    return "Supervised finetune (SFT)" if policy == "sft" else METHODS[reward]
+
+
+def write_everything(ctx, cfg, rl_metrics: dict, results: list[dict]) -> dict:
+    out = ctx.out
+    reward, tasks = rl_metrics["reward"], list(rl_metrics["tasks"])
+    main = [r for r in results if "@" not in r["policy"]]
+    counts = tally(main)
+    metrics: dict = {"reward": reward, "tasks": tasks, "episodes_per_cell": cfg.episodes, "max_steps": cfg.max_steps,
+                     "extra_scenes": len(cfg.extra_scenes)}
+    for (policy, task, split), (k, n) in sorted(counts.items()):
+        p, lo, hi = wilson(k, n)
+        base = f"success/{policy}/{task}/{split}"
+        metrics.update({base: p, f"{base}_lo": lo, f"{base}_hi": hi, f"{base}_n": n})
+
+    splits = [s for s in cfg.splits if any(k[2] == s for k in counts)]
+    rows = [(method_label(p, reward), p) for p in cfg.policies]
+    header, body = success_table(counts, rows, tasks, splits)
+    table_name = "Table 1 layout: success rate in the simulator" if len(tasks) == 1 else \
+        f"Table 2 layout: one multi-task policy ({', '.join(tasks)})"
+    note = (f"Success rate [95% Wilson interval] (successes/episodes); {cfg.episodes} episodes per task and split, "
+            f"horizon {cfg.max_steps} steps, ManiSkill's own success check. IND: the training scenes with new initial "
+            f"states; OOD: held-out scenes (unseen objects, unseen object-container pairs); extra: user-added scenes.")
+    sections = [(table_name, note + "\n\n" + markdown_table(header, body), f"<p>{note}</p>" + html_table(header, body))]
+
+    # Fig. 2: success vs training wall time (SFT at 0 s, then each PPO snapshot)
+    snaps = json.loads((ctx.input("rl") / "snapshots" / "index.json").read_text()) \
+        if (ctx.input("rl") / "snapshots" / "index.json").is_file() else []
+    wall = {f"ppo@{s['timesteps']}": s["wall_seconds"] for s in snaps}
+    snap_counts = tally([r for r in results if "@" in r["policy"]])
+    pts: dict[str, list] = {"ind": [], "ood": []}
+    for split in pts:
+        if ("sft", "all", split) in counts:
+            pts[split].append((0.0, *counts[("sft", "all", split)]))
+        for label, t in wall.items():
+            if (label, "all", split) in snap_counts:
+                pts[split].append((t, *snap_counts[(label, "all", split)]))
+                k, n = snap_counts[(label, "all", split)]
+                metrics[f"snapshots/{label}/{split}"] = k / n
+    figs = []
+    if any(len(v) > 1 for v in pts.values()):
+        plot_success_vs_time(pts, out / "success_vs_time.png", f"{METHODS[reward]}: success vs training time")
+        figs.append("success_vs_time.png")
+    if figs:
+        sections.append(("Success vs training wall time (Fig. 2)", *image_section(figs)))
+    for name, title in (("reward_diagnostics.png", "Reward along held-out successful episodes (Fig. 3)"),
+                        ("training.png", "PPO training curve")):
+        if (ctx.input("rl") / name).is_file():
+            sections.append((title, *image_section([name])))
+
+    # Figs. 4-5: one IND and one OOD rollout per policy
+    gifs = []
+    for r in main:
+        if "frames" in r:
+            name = f"rollout_{r['policy']}_{r['split']}.gif"
+            write_gif(r["frames"], out / name)
+            gifs.append((name, f"{method_label(r['policy'], reward)}, {SPLIT_NAMES[r['split']]}: {r['instruction']} "
+                               f"({'success' if r['success'] else 'failure'}, {r['steps']} steps)"))
+    if gifs:
+        md = "\n\n".join(f"{cap}\n\n![{n}]({n})" for n, cap in gifs)
+        hb = "".join(f"<figure><img src='{n}'><figcaption>{cap}</figcaption></figure>" for n, cap in gifs)
+        sections.append(("Rollouts in the simulator (Figs. 4-5)", md, hb))
+
+    extreme = _extreme_actions(ctx, out)
+    if extreme:
+        sections.append(("The action world model under extreme actions (Fig. 9)", *image_section([extreme])))
+    write_report(out, f"RoboScape-R evaluation: reward = {reward}", sections)
+    return metrics
+
+
+@torch.no_grad()
+def _extreme_actions(ctx, out, steps: int = 8) -> str | None:
+    """Rows: true actions, zero, and +-10x the data's action bound, from one held-out start frame."""
+    from stages.collect.dataset import Dataset
+    from stages.tokenize.store import TokenStore
+    from stages.tokenize.tokenizer import load_tokenizer
+    from stages.train_wm.rollout import load_world_model
+
+    split = json.loads((ctx.input("train_wm") / "split.json").read_text())
+    ids = split["heldout"] or split["train"]
+    ds = Dataset(ctx.input("collect"))
+    ep_id = next((i for i in ids if ds.load(i).action.shape[0] >= steps), None)
+    if ep_id is None:
+        return None
+    tok = load_tokenizer(ctx.input("tokenize"), ctx.device)
+    wm = load_world_model(ctx.input("train_wm"), "action", ctx.device)
+    tokens = np.asarray(TokenStore(ctx.input("tokenize")).episode(ep_id), dtype=np.int64)
+    true = torch.as_tensor(ds.load(ep_id).action[:steps])
+    bound = torch.maximum(wm.net.action_high.abs(), wm.net.action_low.abs()).cpu()
+    plans = {"true actions": true, "zero": torch.zeros_like(true), "+10x bound": (10 * bound).expand_as(true).clone(),
+             "-10x bound": (-10 * bound).expand_as(true).clone()}
+    rows = []
+    for label, actions in plans.items():
+        roll = wm.rollout(1)
+        roll.reset(torch.as_tensor(tokens[:1]))
+        frames = [tokens[0]]
+        for t in range(steps):
+            frames.append(roll.step(actions[t : t + 1].to(ctx.device)).tokens[0].cpu().numpy())
+        third, _ = tok.decode(torch.as_tensor(np.stack(frames)))
+        rows.append((label, (third.clamp(0, 1).permute(0, 2, 3, 1).cpu().numpy() * 255).round().astype(np.uint8)))
+    strip_figure(rows, out / "extreme_actions.png", "action WM rollouts from one held-out frame (clipped to the data range)")
+    return "extreme_actions.png"

@@ -1,0 +1,145 @@
+"""goals: one goal frame per environment (task x scene), imagined by the text world model.
+
+For every environment the text WM rolls out from the environment's initial frame, conditioned on its
+instruction, until its done head passes ``theta`` (paper Eq. 6), sampling ``candidates`` futures and
+keeping the most confident. ``goal_mode: ground_truth`` instead takes the last frame of a successful
+demonstration (what the authors' code did with ``force_goal``), for the ablation. Both goals are
+always computed where possible, so the artifact reports how far the imagined goal is from the real
+one (LPIPS).
+
+Inputs:
+    collect -- episodes (environments, instructions, successful demos)
+    tokenize -- token store (initial and last frames as tokens) and the tokenizer (decoding)
+    train_wm -- the text world model (``text_wm.pt``)
+
+Outputs:
+    goals.npz     env_ids (E,), tokens (E, h, w) uint16 = THE goal per ``goal_mode``,
+                  generated_tokens / done_prob / steps / reached (E,) of the imagined goals,
+                  ground_truth_tokens (E, h, w) and has_ground_truth (E,)
+    goals.json    per environment: task, scene, split, instruction, chosen goal, done prob, steps
+    goals.png     initial frame | imagined goal | ground-truth goal (third view), per environment
+    metrics.json  fraction of environments whose imagined goal passed theta, mean steps, mean done
+                  prob, LPIPS(imagined, ground truth) per split
+
+Key includes:
+    this config (goal_mode, theta, max_steps, candidates, temperature, seed) and the keys of
+    collect, tokenize and train_wm.
+
+Toy profile:
+    2 candidates, at most 8 imagined steps; every environment of the toy collection.
+"""
+from __future__ import annotations
+
+import json
+from typing import Literal
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from stages.goals.environments import list_environments
+from stages.goals.figure import goal_grid, to_uint8
+from stages.goals.imagine import imagine_goals
+
+GOALS = "goals.npz"
+
+
+class Config(BaseModel):
+    """goals stage configuration (defaults sized for the ``small`` profile)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    seed: int = Field(0, description="seed of the candidate sampling")
+    goal_mode: Literal["generated", "ground_truth"] = Field(
+        "generated", description="generated: imagined by the text WM (paper); ground_truth: last frame of a successful demo")
+    theta: float = Field(0.5, gt=0, lt=1, description="done-head threshold that ends an imagined rollout")
+    max_steps: int = Field(40, ge=1, description="cap on imagined steps per candidate")
+    candidates: int = Field(4, ge=1, description="imagined rollouts per environment; the most confident is kept")
+    temperature: float = Field(1.0, ge=0, description="token sampling temperature of the candidates (0 = greedy)")
+    batch_size: int = Field(64, ge=1, description="imagined rollouts stepped together")
+
+
+def run(ctx) -> None:
+    from stages.common.image_metrics import lpips as lpips_distance
+    from stages.tokenize.store import TokenStore
+    from stages.tokenize.tokenizer import load_tokenizer
+    from stages.train_wm.rollout import load_world_model
+
+    cfg: Config = ctx.config
+    if ctx.device == "cpu":
+        torch.set_num_threads(1)
+    store = TokenStore(ctx.input("tokenize"))
+    tok = load_tokenizer(ctx.input("tokenize"), ctx.device)
+    envs = list_environments(ctx.input("collect"))
+    if not envs:
+        raise ValueError(f"no environments in {ctx.input('collect')}")
+    start = np.stack([np.asarray(store.episode(e.episodes[0])[0], dtype=np.int64) for e in envs])  # (E, h, w)
+    has_gt = np.array([bool(e.successful) for e in envs])
+    gt = np.stack([np.asarray(store.episode(e.successful[0])[-1], dtype=np.int64) if e.successful else start[i]
+                   for i, e in enumerate(envs)])  # (E, h, w)
+
+    wm = load_world_model(ctx.input("train_wm"), kind="text", device=ctx.device, temperature=cfg.temperature)
+    per_batch = max(1, cfg.batch_size // cfg.candidates)
+    parts = []
+    with ctx.progress(cfg.max_steps * ((len(envs) + per_batch - 1) // per_batch), "imagine goals", unit="step") as bar:
+        for i in range(0, len(envs), per_batch):
+            sl = slice(i, i + per_batch)
+            parts.append(imagine_goals(wm, torch.from_numpy(start[sl]).to(ctx.device), [e.instruction for e in envs[sl]],
+                                       theta=cfg.theta, max_steps=cfg.max_steps, candidates=cfg.candidates,
+                                       seed=cfg.seed + i, progress=bar))
+    gen = {k: np.concatenate([getattr(p, k) for p in parts]) for k in ("tokens", "done_prob", "steps", "reached")}
+    if cfg.goal_mode == "generated":
+        chosen = gen["tokens"]
+    else:
+        missing = [e.env_id for e, ok in zip(envs, has_gt) if not ok]
+        if missing:
+            ctx.log.warning("goals: %d environments have no successful demo; their ground-truth goal is the "
+                            "initial frame: %s", len(missing), missing[:5])
+        chosen = gt
+    np.savez(ctx.out / GOALS, env_ids=np.array([e.env_id for e in envs]), tokens=chosen.astype(np.uint16),
+             generated_tokens=gen["tokens"].astype(np.uint16), done_prob=gen["done_prob"], steps=gen["steps"],
+             reached=gen["reached"], ground_truth_tokens=gt.astype(np.uint16), has_ground_truth=has_gt,
+             goal_mode=np.array(cfg.goal_mode))
+
+    third_start, _ = tok.decode(torch.from_numpy(start))
+    third_gen, wrist_gen = tok.decode(torch.from_numpy(gen["tokens"]))
+    third_gt, wrist_gt = tok.decode(torch.from_numpy(gt))
+    dist = 0.5 * (lpips_distance(third_gen, third_gt, device=ctx.device) + lpips_distance(wrist_gen, wrist_gt, device=ctx.device))
+    dist = dist.cpu().numpy()  # (E,)
+    meta = []
+    for i, e in enumerate(envs):
+        meta.append({"env_id": e.env_id, "task": e.task, "scene_id": e.scene_id, "split": e.split,
+                     "instruction": e.instruction, "goal_mode": cfg.goal_mode,
+                     "imagined": {"done_prob": float(gen["done_prob"][i]), "steps": int(gen["steps"][i]),
+                                  "reached": bool(gen["reached"][i])},
+                     "ground_truth_episode": e.successful[0] if e.successful else None,
+                     "lpips_imagined_vs_ground_truth": float(dist[i]) if has_gt[i] else None})
+    (ctx.out / "goals.json").write_text(json.dumps(meta, indent=1) + "\n")
+    goal_grid([(e.env_id, [to_uint8(third_start[i]), to_uint8(third_gen[i]), to_uint8(third_gt[i]) if has_gt[i] else None])
+               for i, e in enumerate(envs)], ["initial", "imagined goal", "ground-truth goal"], ctx.out / "goals.png")
+
+    metrics: dict = {"environments": len(envs), "goal_mode": cfg.goal_mode}
+    for split in ("ind", "ood"):
+        idx = np.array([i for i, e in enumerate(envs) if e.split == split], dtype=int)
+        if len(idx) == 0:
+            continue
+        metrics[f"{split}/environments"] = int(len(idx))
+        metrics[f"{split}/imagined_reached_theta"] = float(gen["reached"][idx].mean())
+        metrics[f"{split}/imagined_steps_mean"] = float(gen["steps"][idx].mean())
+        metrics[f"{split}/imagined_done_prob_mean"] = float(gen["done_prob"][idx].mean())
+        with_gt = idx[has_gt[idx]]
+        if len(with_gt):
+            metrics[f"{split}/lpips_imagined_vs_ground_truth"] = float(dist[with_gt].mean())
+    ctx.log.info("goals: %s", metrics)
+    ctx.write_metrics(metrics)
+
+
+def load_goals(goals_dir) -> dict:
+    """The goals artifact as numpy arrays (see Outputs); ``env_ids`` as a list of str."""
+    from pathlib import Path
+
+    with np.load(Path(goals_dir) / GOALS) as z:
+        out = {k: z[k] for k in z.files}
+    out["env_ids"] = [str(s) for s in out["env_ids"]]
+    out["goal_mode"] = str(out["goal_mode"])
+    return out

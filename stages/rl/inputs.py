@@ -1,0 +1,86 @@
+"""Everything the rl stage reads from its inputs, loaded once."""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from stages.goals.environments import Environment, list_environments
+from stages.rl.observation import ObservationFn
+from stages.rl.wm_env import Start
+
+
+@dataclass
+class RLInputs:
+    tok: object  # stages.tokenize.tokenizer.Tokenizer
+    store: object  # stages.tokenize.store.TokenStore
+    dataset: object  # stages.collect.dataset.Dataset
+    meta: dict  # episode_id -> EpisodeMeta
+    split: dict  # {"train": [...], "heldout": [...], "ood": [...]} from train_wm
+    envs: list[Environment]  # every environment, in the goals artifact's order
+    goal_index: dict  # env_id -> row in the goals artifact
+    goals: dict  # stages.goals.load_goals
+    wm: object  # the action world model (stages.train_wm.rollout.WorldModel)
+    obs_fn: ObservationFn
+    device: str
+
+    @classmethod
+    def load(cls, ctx, cfg) -> "RLInputs":
+        from stages.collect.dataset import Dataset
+        from stages.goals import load_goals
+        from stages.tokenize.store import TokenStore
+        from stages.tokenize.tokenizer import load_tokenizer
+        from stages.train_wm.rollout import TEXT_EMBEDDINGS, load_world_model
+
+        wm_dir = ctx.input("train_wm")
+        tok = load_tokenizer(ctx.input("tokenize"), ctx.device)
+        ds = Dataset(ctx.input("collect"))
+        goals = load_goals(ctx.input("goals"))
+        envs = list_environments(ctx.input("collect"))
+        goal_index = {env_id: i for i, env_id in enumerate(goals["env_ids"])}
+        missing = [e.env_id for e in envs if e.env_id not in goal_index]
+        if missing:
+            raise ValueError(f"the goals artifact has no goal for environments {missing[:5]}")
+        text = json.loads((wm_dir / TEXT_EMBEDDINGS).read_text())
+        return cls(tok=tok, store=TokenStore(ctx.input("tokenize")), dataset=ds,
+                   meta={m.episode_id: m for m in ds.episodes},
+                   split=json.loads((wm_dir / "split.json").read_text()), envs=envs, goal_index=goal_index,
+                   goals=goals, wm=load_world_model(wm_dir, kind="action", device=ctx.device),
+                   obs_fn=ObservationFn(tok, text), device=ctx.device)
+
+    def tokens(self, episode_id: str) -> np.ndarray:
+        """(T+1, h, w) int64 tokens of an episode."""
+        return np.asarray(self.store.episode(episode_id), dtype=np.int64)
+
+    def training_envs(self, tasks: list[str]) -> list[Environment]:
+        train = set(self.split["train"])
+        out = [e for e in self.envs if e.split == "ind" and e.task in tasks and any(i in train for i in e.episodes)]
+        if not out:
+            raise ValueError(f"no in-domain training environments for tasks {tasks}")
+        return out
+
+    def starts(self, envs: list[Environment]) -> list[Start]:
+        """Initial states of training episodes of ``envs`` (first frames)."""
+        train = set(self.split["train"])
+        return [Start(self.goal_index[e.env_id], e.instruction, self.tokens(i)[0])
+                for e in envs for i in e.episodes if i in train]
+
+    def goal_frames(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Decoded goal frames (G, 3, H, W) x 2 in [0, 1], rows as in the goals artifact."""
+        return self.tok.decode(torch.as_tensor(self.goals["tokens"].astype(np.int64)))
+
+    def episodes_for(self, ids: list[str], tasks: list[str], successful_only: bool, limit: int, seed: int,
+                     kinds: list[str] | None = None) -> list[str]:
+        """Up to ``limit`` episode ids from ``ids`` of ``tasks`` (a seeded choice)."""
+        pick = [i for i in ids if self.meta[i].task in tasks and (self.meta[i].success or not successful_only)
+                and (kinds is None or self.meta[i].kind in kinds)]
+        if len(pick) > limit:
+            rng = np.random.default_rng(seed)
+            pick = [pick[j] for j in sorted(rng.choice(len(pick), size=limit, replace=False))]
+        return pick
+
+    def env_of(self, episode_id: str) -> int:
+        m = self.meta[episode_id]
+        return self.goal_index[f"{m.task}/{m.scene_id}"]

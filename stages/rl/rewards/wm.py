@@ -1,0 +1,70 @@
+"""``wm`` (ours, the paper's): alpha * sparse + beta * dense, both from the world model.
+
+sparse = 1 when the action WM's done head >= theta_sps. dense = perceptual *similarity* of the
+current frame to the environment's goal frame, 1 - LPIPS (averaged over both views), or, with
+``dense: potential``, the shaping term gamma * Phi(s') - Phi(s) with Phi = -LPIPS (policy
+invariant; sums to a telescoping difference, so lingering earns nothing). The goal frames' LPIPS
+features are computed once, not per step. The authors' environment added LPIPS *distance* (paying
+the agent to move away from the goal): tests/rl pin the sign.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from stages.rl.rewards.base import RewardModule, StepBatch
+
+
+class GoalDistance:
+    """LPIPS distance of frames to their goal frames, with the goals' features cached."""
+
+    def __init__(self, goal_third: torch.Tensor, goal_wrist: torch.Tensor, device: str = "cpu"):
+        from stages.common.lpips import get_lpips
+
+        self.net = get_lpips(device)
+        self.device = device
+        with torch.no_grad():
+            self.goal_feats = [self.net.features(g.to(device) * 2 - 1) for g in (goal_third, goal_wrist)]  # [(G, C, h, w)]
+
+    @torch.no_grad()
+    def __call__(self, third: torch.Tensor, wrist: torch.Tensor, goal_index: np.ndarray) -> np.ndarray:
+        """(B,) mean LPIPS over both views of frames (B, 3, H, W) in [0, 1] to goals[goal_index]."""
+        idx = torch.as_tensor(goal_index, dtype=torch.long, device=self.device)
+        d = 0.0
+        for view, gf in zip((third, wrist), self.goal_feats):
+            f = self.net.features(view.to(self.device) * 2 - 1)
+            d = d + self.net.distance_from_features(f, [g[idx] for g in gf])
+        return (d / 2).cpu().numpy().astype(np.float64)
+
+
+class WMReward(RewardModule):
+    name = "wm"
+    needs_frames = True
+
+    def __init__(self, distance: GoalDistance, *, alpha: float, beta: float, theta_sps: float,
+                 dense: str = "similarity", gamma: float = 0.99, num_envs: int = 1):
+        if dense not in ("similarity", "potential"):
+            raise ValueError(f"dense must be 'similarity' or 'potential', got {dense!r}")
+        self.distance, self.alpha, self.beta, self.theta = distance, alpha, beta, theta_sps
+        self.dense_kind, self.gamma = dense, gamma
+        self.prev_phi = np.zeros(num_envs)
+
+    def sparse(self, batch: StepBatch) -> np.ndarray:
+        return (batch.done_prob.cpu().numpy() >= self.theta).astype(np.float64)
+
+    def similarity(self, batch: StepBatch) -> np.ndarray:
+        return 1.0 - self.distance(batch.third, batch.wrist, batch.goal_index)
+
+    def reset(self, rows: np.ndarray, batch: StepBatch) -> None:
+        if self.dense_kind == "potential" and len(rows):
+            phi = -self.distance(batch.third, batch.wrist, batch.goal_index)
+            self.prev_phi[rows] = phi[rows]
+
+    def __call__(self, batch: StepBatch) -> np.ndarray:
+        if self.dense_kind == "similarity":
+            dense = self.similarity(batch)
+        else:
+            phi = -self.distance(batch.third, batch.wrist, batch.goal_index)
+            dense = self.gamma * phi - self.prev_phi
+            self.prev_phi = phi
+        return self.alpha * self.sparse(batch) + self.beta * dense

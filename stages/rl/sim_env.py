@@ -1,0 +1,98 @@
+"""The simulator as an RL environment with the SAME observation function as the world model.
+
+Used by the ``rule`` baseline (PPO directly in ManiSkill with the task's hand-written dense reward,
+the paper's "RL w. ManiSkill" row) and by evaluation. Each env samples one of its assigned
+(task, scene) environments at reset; simulator instances are created lazily and cached (building
+one costs seconds), at most ``cache_size`` per env.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+
+from stages.rl.observation import ObservationFn, index_obs
+
+
+@dataclass(frozen=True)
+class SimSpec:
+    task: str
+    scene: dict  # Scene.to_dict() of the collect catalog
+    instruction: str = ""  # empty: the env's own instruction for the scene
+    env_index: int = -1  # row in the goals artifact, -1 if none
+
+    @property
+    def key(self) -> str:
+        return f"{self.task}/{self.scene['scene_id']}"
+
+
+class SimTaskEnv(gym.Env):
+    """ManiSkill task env -> {codes, instruction} observations, rule reward, success = terminated."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, specs: list[SimSpec], obs_fn: ObservationFn, *, max_steps: int, image_size: int = 64,
+                 robot_mesh: str = "lowpoly", seed: int = 0, cache_size: int = 2, keep_frames: bool = False):
+        if not specs:
+            raise ValueError("SimTaskEnv needs at least one (task, scene)")
+        self.specs, self.obs_fn, self.max_steps = list(specs), obs_fn, max_steps
+        self.image_size, self.robot_mesh, self.cache_size = image_size, robot_mesh, cache_size
+        self.observation_space = obs_fn.space
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
+        self.rng = np.random.default_rng(seed)
+        self._envs: OrderedDict[str, gym.Env] = OrderedDict()
+        self.spec_now: SimSpec = self.specs[0]
+        self.env: gym.Env | None = None
+        self.t = 0
+        self.instruction = ""
+        self.keep_frames = keep_frames
+        self.frames: list[tuple[np.ndarray, np.ndarray]] = []  # (third, wrist) of the episode when kept
+
+    def _env_for(self, spec: SimSpec) -> gym.Env:
+        from stages.collect.sim import make_task_env
+
+        if spec.key in self._envs:
+            self._envs.move_to_end(spec.key)
+            return self._envs[spec.key]
+        while len(self._envs) >= self.cache_size:
+            _, old = self._envs.popitem(last=False)
+            old.close()
+        env = make_task_env(spec.task, spec.scene, image_size=self.image_size, robot_mesh=self.robot_mesh)
+        self._envs[spec.key] = env
+        return env
+
+    def _observe(self, raw: dict) -> dict[str, np.ndarray]:
+        if self.keep_frames:
+            self.frames.append((raw["third"], raw["wrist"]))
+        obs = self.obs_fn.from_views(raw["third"][None], raw["wrist"][None], [self.instruction])
+        return index_obs(obs, 0)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+        spec = (options or {}).get("spec") or self.specs[int(self.rng.integers(len(self.specs)))]
+        self.spec_now = spec
+        self.env = self._env_for(spec)
+        self.instruction = spec.instruction or self.env.instruction
+        raw, info = self.env.reset(seed=int(self.rng.integers(2**31 - 1)))
+        self.t = 0
+        self.frames = []
+        return self._observe(raw), {"success": bool(info["success"]), "env": spec.key}
+
+    def step(self, action):
+        a = np.asarray(action, dtype=np.float32).reshape(-1)
+        if a.shape != (7,) or not np.isfinite(a).all():
+            raise ValueError(f"expected a finite (7,) action, got {a!r}")
+        raw, reward, _, env_truncated, info = self.env.step(np.clip(a, -1.0, 1.0))
+        self.t += 1
+        success = bool(info["success"])
+        truncated = (self.t >= self.max_steps or bool(env_truncated)) and not success
+        return self._observe(raw), float(reward), success, truncated, {"success": success, "env": self.spec_now.key}
+
+    def close(self) -> None:
+        for env in self._envs.values():
+            env.close()
+        self._envs.clear()

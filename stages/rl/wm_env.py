@@ -1,0 +1,179 @@
+"""The action world model as an RL environment: a batched stable-baselines3 ``VecEnv`` and a
+single gymnasium ``Env`` on top of it.
+
+reset: each env samples a training environment (task x scene) and one of its initial frames from
+the collected data. step(action): the action WM predicts the next frame (KV-cached, batched), the
+reward module scores it, ``terminated`` = done head >= theta_done, ``truncated`` = step cap.
+Observations come from ``ObservationFn`` (the same function the simulator env uses).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import gymnasium as gym
+import numpy as np
+import torch
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv
+
+from stages.rl.observation import ObservationFn, index_obs
+from stages.rl.rewards.base import RewardModule, StepBatch
+
+
+@dataclass
+class Start:
+    """One initial state of one environment."""
+
+    env_index: int  # row of the environment in the goals artifact
+    instruction: str
+    tokens: np.ndarray  # (h, w) the initial frame
+
+
+def check_actions(actions: np.ndarray, n: int) -> np.ndarray:
+    """(n, 7) finite float32 actions, or a ValueError that says what is wrong."""
+    a = np.asarray(actions, dtype=np.float32)
+    if a.shape != (n, 7):
+        raise ValueError(f"expected actions of shape ({n}, 7), got {a.shape}")
+    bad = ~np.isfinite(a)
+    if bad.any():
+        rows = sorted(set(np.nonzero(bad)[0].tolist()))
+        raise ValueError(f"actions contain NaN or inf in envs {rows}: the world-model env only accepts finite actions")
+    return a
+
+
+class WorldModelVecEnv(VecEnv):
+    """``num_envs`` world-model environments stepped as one batch."""
+
+    render_mode = None
+
+    def __init__(self, wm, tokenizer, obs_fn: ObservationFn, reward: RewardModule, starts: Sequence[Start], *,
+                 num_envs: int, max_steps: int, theta_done: float, seed: int = 0, device: str = "cpu"):
+        if not starts:
+            raise ValueError("the world-model env needs at least one initial state")
+        action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
+        super().__init__(num_envs, obs_fn.space, action_space)
+        self.wm, self.tok, self.obs_fn, self.reward = wm, tokenizer, obs_fn, reward
+        self.starts, self.max_steps, self.theta_done, self.device = list(starts), max_steps, theta_done, device
+        self.roll = wm.rollout(num_envs, seed=seed)
+        self.rng = np.random.default_rng(seed)
+        self.current: list[Start] = [self.starts[0]] * num_envs
+        self.t = np.zeros(num_envs, dtype=np.int64)
+        self._actions: np.ndarray | None = None
+        self.stats = {"steps": 0, "episodes": 0, "terminated": 0, "truncated": 0}
+
+    # ---- helpers ----------------------------------------------------------------------------------
+    def _sample_starts(self, rows: np.ndarray) -> None:
+        for r in rows:
+            self.current[r] = self.starts[int(self.rng.integers(len(self.starts)))]
+        self.t[rows] = 0
+
+    def _batch(self, tokens: torch.Tensor, done: torch.Tensor, hidden: torch.Tensor) -> StepBatch:
+        batch = StepBatch(tokens, done, hidden, np.array([s.env_index for s in self.current]))
+        if self.reward.needs_frames:
+            batch.third, batch.wrist = self.tok.decode(tokens)
+        return batch
+
+    def _obs(self, tokens: torch.Tensor) -> dict[str, np.ndarray]:
+        return self.obs_fn.from_tokens(tokens.cpu(), [s.instruction for s in self.current])
+
+    def _restart(self, rows: np.ndarray, tokens: torch.Tensor, done: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
+        """Put new initial frames into ``rows``; returns the updated frame tokens (B, h, w)."""
+        self._sample_starts(rows)
+        new = torch.as_tensor(np.stack([self.current[r].tokens for r in rows]).astype(np.int64), device=self.device)
+        self.roll.reset(new, env_ids=torch.as_tensor(rows))
+        tokens = tokens.clone()
+        tokens[torch.as_tensor(rows)] = new
+        self.reward.reset(rows, self._batch(tokens, done, hidden))
+        return tokens
+
+    # ---- VecEnv -------------------------------------------------------------------------------------
+    def reset(self) -> dict[str, np.ndarray]:
+        rows = np.arange(self.num_envs)
+        self._sample_starts(rows)
+        tokens = torch.as_tensor(np.stack([s.tokens for s in self.current]).astype(np.int64), device=self.device)
+        self.roll.reset(tokens)
+        zeros = torch.zeros(self.num_envs)
+        self.reward.reset(rows, self._batch(tokens, zeros, torch.zeros(self.num_envs, self.wm.spec.dim)))
+        self.reset_infos = [{} for _ in range(self.num_envs)]
+        return self._obs(tokens)
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = check_actions(actions, self.num_envs)
+
+    def step_wait(self):
+        actions, self._actions = self._actions, None
+        if actions is None:
+            raise RuntimeError("step_wait() called before step_async()")
+        out = self.roll.step(torch.as_tensor(actions, device=self.device))
+        batch = self._batch(out.tokens, out.done_prob, out.hidden)
+        rewards = np.asarray(self.reward(batch), dtype=np.float32)
+        self.t += 1
+        done_prob = out.done_prob.cpu().numpy()
+        terminated = done_prob >= self.theta_done
+        truncated = (self.t >= self.max_steps) & ~terminated
+        dones = terminated | truncated
+        obs = self._obs(out.tokens)
+        infos: list[dict[str, Any]] = [{"done_prob": float(done_prob[i]), "env_id": self.current[i].env_index,
+                                        "clipped_actions": self.roll.last_clip_count} for i in range(self.num_envs)]
+        self.stats["steps"] += self.num_envs
+        rows = np.nonzero(dones)[0]
+        if len(rows):
+            for r in rows:
+                infos[r]["terminal_observation"] = index_obs(obs, r)
+                infos[r]["TimeLimit.truncated"] = bool(truncated[r])
+                infos[r]["terminated_by_done_head"] = bool(terminated[r])
+            self.stats["episodes"] += len(rows)
+            self.stats["terminated"] += int(terminated.sum())
+            self.stats["truncated"] += int(truncated.sum())
+            tokens = self._restart(rows, out.tokens, out.done_prob, out.hidden)
+            obs = self._obs(tokens)
+        return obs, rewards, dones, infos
+
+    def close(self) -> None:
+        pass
+
+    def get_attr(self, attr_name: str, indices=None) -> list:
+        return [getattr(self, attr_name)] * len(self._indices(indices))
+
+    def set_attr(self, attr_name: str, value, indices=None) -> None:
+        setattr(self, attr_name, value)
+
+    def env_method(self, method_name: str, *args, indices=None, **kwargs) -> list:
+        raise AttributeError(f"the world-model VecEnv has no per-env method {method_name!r}")
+
+    def env_is_wrapped(self, wrapper_class, indices=None) -> list[bool]:
+        return [False] * len(self._indices(indices))
+
+    def _indices(self, indices) -> list[int]:
+        if indices is None:
+            return list(range(self.num_envs))
+        return [indices] if isinstance(indices, int) else list(indices)
+
+
+class WorldModelEnv(gym.Env):
+    """One world-model environment with the gymnasium API (a batch-of-one ``WorldModelVecEnv``)."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, vec: WorldModelVecEnv):
+        if vec.num_envs != 1:
+            raise ValueError(f"WorldModelEnv wraps a VecEnv of one env, got {vec.num_envs}")
+        self.vec = vec
+        self.observation_space, self.action_space = vec.observation_space, vec.action_space
+
+    def reset(self, *, seed: int | None = None, options=None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self.vec.rng = np.random.default_rng(seed)
+        obs = self.vec.reset()
+        return index_obs(obs, 0), {}
+
+    def step(self, action):
+        self.vec.step_async(np.asarray(action, dtype=np.float32)[None])
+        # step_wait auto-resets; report the terminal observation, as gymnasium expects
+        obs, rew, done, infos = self.vec.step_wait()
+        info = infos[0]
+        if done[0]:
+            terminated = info["terminated_by_done_head"]
+            return info["terminal_observation"], float(rew[0]), bool(terminated), bool(not terminated), info
+        return index_obs(obs, 0), float(rew[0]), False, False, info

@@ -1,0 +1,77 @@
+"""The world-model environment behind gymnasium / stable-baselines3 interfaces."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from stable_baselines3.common.env_checker import check_env
+
+from stages.rl.rewards import GoalDistance, WMReward
+from stages.rl.wm_env import WorldModelEnv, WorldModelVecEnv
+from tests.rl.tiny import obs_fn, starts_for, tiny_action_wm, tiny_tokenizer
+
+
+@pytest.fixture(scope="module")
+def parts():
+    tok = tiny_tokenizer()
+    wm = tiny_action_wm(tok)
+    goals = tok.decode(torch.as_tensor(np.stack([s.tokens for s in starts_for(tok)[:2]]).astype(np.int64)))
+    return tok, wm, goals
+
+
+def _vec(parts, n=3, theta_done=0.999, max_steps=5, beta=0.01):
+    tok, wm, (g3, gw) = parts
+    reward = WMReward(GoalDistance(g3, gw), alpha=1.0, beta=beta, theta_sps=0.5, num_envs=n)
+    return WorldModelVecEnv(wm, tok, obs_fn(tok), reward, starts_for(tok), num_envs=n, max_steps=max_steps,
+                            theta_done=theta_done, seed=0)
+
+
+def test_gym_env_passes_sb3_check_env(parts):
+    check_env(WorldModelEnv(_vec(parts, n=1)), warn=True)
+
+
+def test_vec_env_steps_truncates_and_auto_resets(parts):
+    env = _vec(parts, max_steps=3)
+    obs = env.reset()
+    assert obs["codes"].shape == (3, 6, 8, 8) and obs["instruction"].shape == (3, 384)
+    assert set(np.unique(obs["codes"])) <= {-1.0, 1.0}
+    for t in range(3):
+        obs, rew, dones, infos = env.step(np.zeros((3, 7), np.float32))
+        assert rew.shape == (3,) and np.isfinite(rew).all()
+    assert dones.all() and all(i["TimeLimit.truncated"] for i in infos)
+    assert all("terminal_observation" in i for i in infos)
+    assert (env.t == 0).all() and env.stats["truncated"] == 3
+
+
+def test_done_head_terminates_episodes(parts):
+    env = _vec(parts, theta_done=1e-6, max_steps=50)
+    env.reset()
+    _, _, dones, infos = env.step(np.zeros((3, 7), np.float32))
+    assert dones.all() and all(i["terminated_by_done_head"] and not i["TimeLimit.truncated"] for i in infos)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_actions_are_rejected(parts, bad):
+    env = _vec(parts)
+    env.reset()
+    a = np.zeros((3, 7), np.float32)
+    a[1, 2] = bad
+    with pytest.raises(ValueError, match=r"NaN or inf in envs \[1\]"):
+        env.step(a)
+
+
+def test_wrong_action_shape_is_rejected(parts):
+    env = _vec(parts)
+    env.reset()
+    with pytest.raises(ValueError, match=r"shape \(3, 7\)"):
+        env.step(np.zeros((3, 6), np.float32))
+
+
+def test_actions_change_the_imagined_future(parts):
+    a, b = _vec(parts, n=1), _vec(parts, n=1)
+    oa, ob = a.reset(), b.reset()
+    assert np.array_equal(oa["codes"], ob["codes"])
+    for _ in range(3):
+        oa, *_ = a.step(np.full((1, 7), 1.0, np.float32))
+        ob, *_ = b.step(np.full((1, 7), -1.0, np.float32))
+    assert not np.array_equal(oa["codes"], ob["codes"])
