@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -67,5 +68,18 @@ class StageContext:
     def write_metrics(self, metrics: Mapping[str, Any]) -> Path:
         """Write ``metrics.json`` into the staging dir (sweeps build their results table from it)."""
         path = self.out / "metrics.json"
-        path.write_text(json.dumps(dict(metrics), indent=2, sort_keys=True, default=float) + "\n")
+        path.write_text(json.dumps(_finite(dict(metrics)), indent=2, sort_keys=True, default=float, allow_nan=False) + "\n")
         return path
+
+
+def _finite(x: Any) -> Any:
+    """NaN / inf become None (null), so metrics.json is strict JSON."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    if hasattr(x, "item") and getattr(x, "ndim", 1) == 0:  # numpy / torch scalars
+        return _finite(x.item())
+    return x

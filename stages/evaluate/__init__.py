@@ -47,8 +47,8 @@ class Config(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     seed: int = Field(0, description="base of the evaluation episodes' seeds (kept far from collection seeds)")
-    episodes: int = Field(20, ge=1, description="episodes per (policy, task, split)")
-    max_steps: int = Field(80, ge=1, description="episode horizon in the simulator")
+    episodes: int = Field(10, ge=1, description="episodes per (policy, task, split)")
+    max_steps: int = Field(200, ge=1, description="episode horizon in the simulator (planner demos take ~100-280 steps)")
     policies: list[Literal["sft", "ppo"]] = Field(["sft", "ppo"], min_length=1, description="which rl outputs to evaluate")
     splits: list[Literal["ind", "ood", "extra"]] = Field(["ind", "ood", "extra"], min_length=1)
     snapshot_episodes: int = Field(4, ge=0, description="episodes per (snapshot, split) for success vs training time")

@@ -14,16 +14,14 @@ def goal_grid(rows: list[tuple[str, list[np.ndarray]]], columns: list[str], path
     import matplotlib.pyplot as plt
 
     rows = rows[:max_rows]
-    fig, axes = plt.subplots(len(rows), len(columns), figsize=(1.6 * len(columns), 1.5 * len(rows)), squeeze=False)
+    fig, axes = plt.subplots(len(rows), len(columns), figsize=(2.0 * len(columns), 1.7 * len(rows)), squeeze=False)
     for r, (label, images) in enumerate(rows):
         for c, img in enumerate(images):
             ax = axes[r][c]
             ax.axis("off")
             if img is not None:
                 ax.imshow(img)
-            if r == 0:
-                ax.set_title(columns[c], fontsize=7)
-        axes[r][0].text(-4, 32, label, fontsize=6, ha="right", va="center")
+            ax.set_title(f"{columns[c]}\n{label}" if c == 0 else columns[c], fontsize=6, loc="left")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -60,14 +60,14 @@ class Config(BaseModel):
     tasks: list[Literal["pick_place", "push", "pull", "move_to_aim"]] = Field(
         list(TASKS), min_length=1, description="tasks the one policy trains on (multi-task when several)")
     # reward `wm`
-    alpha: float = Field(2.0, ge=0, description="weight of the sparse done-head reward")
+    alpha: float = Field(5.0, ge=0, description="weight of the sparse done-head reward")
     beta: float = Field(0.02, ge=0, description="weight of the dense goal-similarity reward")
     theta_sps: float = Field(0.5, gt=0, lt=1, description="done-head threshold of the sparse reward")
     dense: Literal["similarity", "potential"] = Field(
         "similarity", description="similarity: 1 - LPIPS to the goal; potential: gamma*Phi(s') - Phi(s), Phi = -LPIPS")
     # environment
     theta_done: float = Field(0.5, gt=0, lt=1, description="done-head threshold that terminates a WM episode")
-    max_episode_steps: int = Field(50, ge=1, description="truncation horizon (WM and simulator)")
+    max_episode_steps: int = Field(200, ge=1, description="truncation horizon in the world model (planner demos take ~100-280 steps)")
     num_envs: int = Field(16, ge=1, description="world-model environments stepped as one batch")
     sim_envs: int = Field(2, ge=1, description="simulator environments for reward: rule")
     # PPO

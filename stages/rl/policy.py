@@ -72,7 +72,7 @@ def sft(model: PPO, obs: dict[str, np.ndarray], actions: np.ndarray, *, epochs: 
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            total += float(loss) * len(idx)
+            total += float(loss.detach()) * len(idx)
         losses.append(total / len(target))
         if progress is not None:
             progress.update(1)

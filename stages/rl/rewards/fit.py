@@ -66,7 +66,7 @@ def _fit(model, inputs, labels: torch.Tensor, steps: int, lr: float, batch: int,
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        losses.append(float(loss))
+        losses.append(float(loss.detach()))
     model.eval()
     return losses
 

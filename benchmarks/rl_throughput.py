@@ -1,0 +1,119 @@
+"""PPO throughput, measured in one run: env steps/s (updates included) inside the world-model env
+vs inside ManiSkill, with the same observation (64x64 views -> tokenizer latent + instruction).
+
+World-model side: the action WM at the ``small`` profile's size (random weights: speed does not
+depend on them), ``num_envs`` batched envs, reward = the ``wm`` module (done head + LPIPS to a
+cached goal, so every step decodes its frame). Simulator side: the push task with the low-poly
+Panda, ``sim_envs`` envs in a DummyVecEnv, reward = the task's rule reward; every frame goes
+through the same tokenizer. Both use the same PPO settings and policy.
+
+    .venv/bin/python benchmarks/rl_throughput.py [--wm-steps 2048] [--sim-steps 256]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def tokenizer():
+    from stages.tokenize import Config as TokConfig
+    from stages.tokenize.model import ModelSpec, TokenizerNet
+    from stages.tokenize.tokenizer import Tokenizer
+
+    c = TokConfig()
+    torch.manual_seed(0)
+    return Tokenizer(TokenizerNet(ModelSpec(image_size=c.image_size, bits=c.bits, channels=tuple(c.channels),
+                                            res_blocks=c.res_blocks)))
+
+
+def action_wm(tok):
+    from stages.train_wm import Config as WMConfig
+    from stages.train_wm.model import WMSpec, WorldModelNet
+    from stages.train_wm.rollout import WorldModel
+
+    c = WMConfig()
+    torch.manual_seed(0)
+    net = WorldModelNet(WMSpec(kind="action", vocab_size=tok.vocab_size, grid=tok.grid, dim=c.dim, depth=c.depth,
+                               heads=c.heads, head_depth=c.head_depth, mlp_ratio=c.mlp_ratio, window=c.window,
+                               control_tokens=c.control_tokens))
+    net.set_action_stats(torch.rand(256, 7) * 2 - 1)
+    return WorldModel(net.eval(), decode_steps=c.decode_steps)
+
+
+def ppo_cfg(num_envs: int):
+    from stages.rl import Config
+
+    c = Config()
+    return SimpleNamespace(**{**c.model_dump(), "n_steps": 64, "batch_size": min(256, 64 * num_envs)})
+
+
+def timed_learn(env, steps: int, num_envs: int) -> float:
+    from stages.rl.policy import make_ppo
+
+    model = make_ppo(env, ppo_cfg(num_envs), seed=0, device="cpu")
+    model.learn(total_timesteps=64 * num_envs)  # warm-up: one rollout + update
+    t = time.perf_counter()
+    model.learn(total_timesteps=steps, reset_num_timesteps=False)
+    return (model.num_timesteps - 64 * num_envs) / (time.perf_counter() - t)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--wm-steps", type=int, default=2048)
+    ap.add_argument("--sim-steps", type=int, default=256)
+    ap.add_argument("--num-envs", type=int, default=16)
+    ap.add_argument("--sim-envs", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from stages.collect.sim import default_catalog
+    from stages.rl.observation import ObservationFn
+    from stages.rl.rewards import GoalDistance, WMReward
+    from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.rl.wm_env import Start, WorldModelVecEnv
+
+    tok = tokenizer()
+    scene = next(s for s in default_catalog().values() if s.split == "ind")
+    probe = SimTaskEnv([SimSpec("push", scene.to_dict())], ObservationFn(tok, {}), max_steps=50, keep_frames=True)
+    probe.reset(seed=0)
+    instruction = probe.instruction
+    third, wrist = probe.frames[0]
+    probe.close()
+    obs_fn = ObservationFn(tok, {})
+    obs_fn.text([instruction])
+    tokens = tok.encode(third[None], wrist[None]).numpy()[0]
+
+    wm = action_wm(tok)
+    goal = tok.decode(torch.as_tensor(tokens[None]))
+    reward = WMReward(GoalDistance(*goal), alpha=2.0, beta=0.02, theta_sps=0.5, num_envs=args.num_envs)
+    wm_env = WorldModelVecEnv(wm, tok, obs_fn, reward, [Start(0, instruction, tokens)], num_envs=args.num_envs,
+                              max_steps=50, theta_done=0.999, seed=0)
+    wm_rate = timed_learn(wm_env, args.wm_steps, args.num_envs)
+
+    sim_env = DummyVecEnv([lambda i=i: SimTaskEnv([SimSpec("push", scene.to_dict())], obs_fn, max_steps=50, seed=i)
+                           for i in range(args.sim_envs)])
+    sim_rate = timed_learn(sim_env, args.sim_steps, args.sim_envs)
+    sim_env.close()
+
+    print("PPO env steps/s, updates included (one run, 1 torch thread, this machine)")
+    print(f"  world-model env: {args.num_envs} batched envs, small-profile action WM "
+          f"(dim {wm.spec.dim}, depth {wm.spec.depth}, {wm.spec.tokens} tokens/frame, {wm.decode_steps} decoding passes), "
+          f"wm reward with LPIPS: {wm_rate:.1f}")
+    print(f"  ManiSkill env:   {args.sim_envs} envs (push, low-poly Panda, 64x64 x 2 views, tokenizer obs), rule reward: {sim_rate:.1f}")
+    print(f"  ratio world model / ManiSkill: {wm_rate / sim_rate:.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,38 @@
+"""The policy sees the same kind of input in the world model and in the simulator."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from stages.rl.rewards import GoalDistance, WMReward
+from stages.rl.wm_env import Start, WorldModelVecEnv
+from tests.rl.tiny import obs_fn, tiny_action_wm, tiny_tokenizer
+
+pytestmark = pytest.mark.sim
+
+
+def test_wm_env_and_sim_env_observe_a_real_frame_identically():
+    from stages.collect.sim import default_catalog
+    from stages.rl.sim_env import SimSpec, SimTaskEnv
+
+    tok = tiny_tokenizer()
+    fn = obs_fn(tok)
+    scene = next(s for s in default_catalog().values() if s.split == "ind")
+    sim = SimTaskEnv([SimSpec("push", scene.to_dict())], fn, max_steps=3, keep_frames=True)
+    try:
+        obs_sim, _ = sim.reset(seed=0)
+        third, wrist = sim.frames[0]
+        assert third.shape == (64, 64, 3) and third.dtype == np.uint8 and third.std() > 5  # a real rendered frame
+        tokens = tok.encode(third[None], wrist[None]).numpy()[0]
+        wm = tiny_action_wm(tok)
+        goal = tok.decode(torch.as_tensor(tokens[None]))
+        vec = WorldModelVecEnv(wm, tok, fn, WMReward(GoalDistance(*goal), alpha=1, beta=0.01, theta_sps=0.5),
+                               [Start(0, sim.instruction, tokens)], num_envs=1, max_steps=3, theta_done=0.99)
+        obs_wm = vec.reset()
+        for k in ("codes", "instruction"):
+            np.testing.assert_array_equal(obs_wm[k][0], obs_sim[k])
+        obs_sim2, *_ = sim.step(np.zeros(7, np.float32))
+        assert obs_sim2["codes"].shape == obs_wm["codes"][0].shape
+    finally:
+        sim.close()
