@@ -1,0 +1,93 @@
+"""The real pipeline, all six stages, at toy scale, through the real CLI (one shared store).
+
+Slow by nature (every stage trains or simulates for real): about ten minutes on 2 cores.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+STAGES = ["collect", "tokenize", "train_wm", "goals", "rl", "evaluate"]
+pytestmark = [pytest.mark.slow, pytest.mark.sim]
+
+
+def cli(store: Path, *args: str) -> subprocess.CompletedProcess:
+    proc = subprocess.run([sys.executable, "-m", "pipeline", *args, "--store", str(store)], cwd=REPO,
+                          capture_output=True, text=True, timeout=3000)
+    assert proc.returncode == 0, f"pipeline {' '.join(args)} exited {proc.returncode}\n{proc.stdout}\n{proc.stderr[-6000:]}"
+    return proc
+
+
+def actions(proc: subprocess.CompletedProcess) -> Counter:
+    """(stage, action) counts from the runner's '[i/n] stage key action' lines."""
+    out = Counter()
+    for line in proc.stderr.splitlines():
+        parts = line.split()
+        if len(parts) >= 4 and parts[0].startswith("[") and parts[0].endswith("]") and "/" in parts[0]:
+            out[(parts[1], parts[3])] += 1
+    return out
+
+
+def artifact(store: Path, stage: str) -> Path:
+    arts = sorted((store / stage).glob("*/*/manifest.json"), key=lambda p: p.stat().st_mtime)
+    assert arts, f"no {stage} artifact in {store}"
+    return arts[-1].parent
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> Path:
+    store = tmp_path_factory.mktemp("toy") / "artifacts"
+    first = cli(store, "run", "--profile", "toy")
+    assert all(actions(first)[(s, "ran")] == 1 for s in STAGES), first.stderr[-3000:]
+    return store
+
+
+def test_all_six_stages_produce_their_artifacts_and_the_report(store):
+    ev = artifact(store, "evaluate")
+    report = (ev / "report.md").read_text()
+    assert "success rate" in report.lower() and "IND" in report and "OOD" in report
+    assert (ev / "report.html").is_file() and list(ev.glob("rollout_*.gif"))
+    metrics = json.loads((ev / "metrics.json").read_text())
+    assert any(k.startswith("success/ppo/all/ind") for k in metrics)
+    rl = json.loads((artifact(store, "rl") / "metrics.json").read_text())
+    assert rl["ppo/param_change_relative"] > 0  # PPO changed the policy
+    assert rl["ppo/episodes"] > 0  # episodes ended, by the done head or by truncation
+
+
+def test_second_run_executes_nothing(store):
+    again = actions(cli(store, "run", "--profile", "toy"))
+    assert again == Counter({(s, "cached"): 1 for s in STAGES})
+
+
+def test_adding_evaluation_scenes_reruns_only_evaluate(store):
+    scene = '[{shape: cube, size: large, color: [0.9, 0.5, 0.1], color_name: orange, container: bowl, table: wood}]'
+    proc = cli(store, "run", "--profile", "toy", "--set", f"evaluate.extra_scenes={scene}", "--set", "evaluate.splits=[extra]")
+    acts = actions(proc)
+    assert acts[("evaluate", "ran")] == 1 and sum(n for (s, a), n in acts.items() if a == "ran") == 1
+    results = [json.loads(x) for x in (artifact(store, "evaluate") / "results.jsonl").read_text().splitlines()]
+    assert {r["split"] for r in results if "@" not in r["policy"]} == {"extra"}
+    assert any("orange" in r["instruction"] for r in results)
+
+
+def test_same_seed_same_evaluation(store):
+    path = Path(cli(store, "show", "evaluate", "--profile", "toy").stdout.splitlines()[1].removeprefix("path: "))
+    before = (path / "results.jsonl").read_text()
+    proc = cli(store, "run", "--profile", "toy", "--force", "evaluate")
+    assert actions(proc)[("evaluate", "ran")] == 1
+    assert (path / "results.jsonl").read_text() == before  # --force keeps the key: same path, rerun from scratch
+
+
+def test_reward_sweep_reuses_the_shared_stages(store):
+    proc = cli(store, "sweep", "rewards", "--until", "rl", "--profile", "toy")
+    acts = actions(proc)
+    for s in ("collect", "tokenize", "train_wm", "goals"):
+        assert acts[(s, "ran")] == 0 and acts[(s, "cached")] == 1
+    assert acts[("rl", "ran")] + acts[("rl", "cached")] == 12
+    table = json.loads(next((store / "sweeps" / "rewards").glob("*/results.json")).read_text())
+    assert sorted({r["rl.reward"] for r in table["rows"]}) == ["embedding", "proxy", "rule", "wm"]
