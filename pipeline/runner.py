@@ -102,6 +102,7 @@ def execute(
             log_node(n, "cached")
 
     ex = get_executor(executor, jobs) if any(n.status == "run" for n in nodes) else None
+    completed = False
     try:
         while True:
             pending = [n for n in nodes if n.key not in done and n.key not in failed_keys]
@@ -133,13 +134,12 @@ def execute(
                     log_node(n, "failed", error=err.error)
 
             ex.run_wave(payloads, on_done)
+        completed = True
     finally:
         if ex is not None:
             ex.close()
         record["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
-        record["status"] = "failed" if failures or failed_keys else "ok"
-        if record["status"] == "running":
-            record["status"] = "interrupted"
+        record["status"] = ("failed" if failures or failed_keys else "ok") if completed else "interrupted"
         project.store.write_run(record)
     return RunResult(record, failures)
 
