@@ -1,0 +1,83 @@
+"""Each suboptimal trajectory kind differs from the optimal plan in the intended way (no simulator)."""
+import numpy as np
+import pytest
+
+from stages.collect.plans import KINDS, Grip, Layout, Move, optimal_plan, suboptimal_plan
+
+DOWN = (0.0, 1.0, 0.0, 0.0)
+LAYOUTS = {
+    "pick_place": Layout("pick_place", (0.02, 0.05, 0.018), 0.018, DOWN, DOWN, target_p=(0.05, -0.15, 0.0), place_z=0.035),
+    "push": Layout("push", (-0.05, 0.0, 0.018), 0.018, DOWN, DOWN, target_p=(0.05, 0.0, 0.018), direction=1.0),
+    "pull": Layout("pull", (0.05, 0.0, 0.018), 0.018, DOWN, DOWN, target_p=(-0.05, 0.0, 0.018), direction=-1.0),
+}
+
+
+def _moves(plan, label=None):
+    return [s for s in plan if isinstance(s, Move) and (label is None or s.label == label)]
+
+
+def _dist_to_polyline(p, pts):
+    best = np.inf
+    for a, b in zip(pts[:-1], pts[1:]):
+        ab = b - a
+        t = np.clip(np.dot(p - a, ab) / max(np.dot(ab, ab), 1e-12), 0, 1)
+        best = min(best, np.linalg.norm(a + t * ab - p))
+    return best
+
+
+@pytest.mark.parametrize("task", sorted(LAYOUTS))
+@pytest.mark.parametrize("kind", KINDS[1:])
+def test_suboptimal_keeps_the_essential_plan(task, kind):
+    opt = optimal_plan(LAYOUTS[task])
+    sub = suboptimal_plan(opt, kind, np.random.default_rng(0))
+    essential = [s for s in sub if isinstance(s, Grip) or s.label == "essential"]
+    assert essential == opt  # the essential waypoints, in order, untouched
+    assert len(sub) > len(opt)
+
+
+@pytest.mark.parametrize("task", sorted(LAYOUTS))
+def test_waypoint_noise_adds_unrelated_waypoints(task):
+    opt = optimal_plan(LAYOUTS[task])
+    path = np.array([m.pose[:3] for m in _moves(opt)])
+    far = 0
+    for seed in range(10):
+        noise = _moves(suboptimal_plan(opt, "waypoint_noise", np.random.default_rng(seed)), "noise")
+        assert noise
+        far += sum(_dist_to_polyline(np.array(m.pose[:3]), path) > 0.03 for m in noise)
+        rot_changed = [abs(abs(np.dot(m.pose[3:], DOWN)) - 1) > 1e-4 for m in noise]
+        assert any(rot_changed)
+    assert far >= 10  # intermediate waypoints off the essential path, not on it
+
+
+@pytest.mark.parametrize("task", sorted(LAYOUTS))
+def test_interpolate_adds_points_on_the_essential_segments(task):
+    opt = optimal_plan(LAYOUTS[task])
+    sub = suboptimal_plan(opt, "interpolate", np.random.default_rng(0))
+    path = np.array([m.pose[:3] for m in _moves(opt)])
+    interp = _moves(sub, "interp")
+    assert len(interp) == 2 * (len(path) - 1)
+    assert all(_dist_to_polyline(np.array(m.pose[:3]), path) < 1e-9 for m in interp)
+
+
+@pytest.mark.parametrize("task", sorted(LAYOUTS))
+def test_grasp_disturb_perturbs_near_grasp_and_place(task):
+    opt = optimal_plan(LAYOUTS[task])
+    roles = {"pick_place": ("grasp", "place"), "push": ("contact", "slide"), "pull": ("contact", "slide")}[task]
+    sub = suboptimal_plan(opt, "grasp_disturb", np.random.default_rng(3))
+    path = np.array([m.pose[:3] for m in _moves(opt)])
+    for i, step in enumerate(sub):
+        if isinstance(step, Move) and step.label == "disturb":
+            nxt = sub[i + 1]
+            assert nxt.role in roles  # right before a grasp/place (contact / slide end) waypoint
+            p = np.array(step.pose[:3])
+            if nxt.role == "slide":  # a wobble off the slide line, at the object's height
+                assert 0 < _dist_to_polyline(p, path) < 0.01 and p[2] == nxt.pose[2]
+            else:
+                d = np.linalg.norm(p - np.array(nxt.pose[:3]))
+                assert 0.005 < d < 0.05  # small, but a real disturbance
+    assert len(_moves(sub, "disturb")) == 2
+
+
+def test_unknown_kind_errors():
+    with pytest.raises(ValueError, match="unknown trajectory kind"):
+        suboptimal_plan(optimal_plan(LAYOUTS["push"]), "zigzag", np.random.default_rng(0))
