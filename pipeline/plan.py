@@ -54,11 +54,11 @@ def parse_set(items: Sequence[str]) -> dict[str, dict[str, Any]]:
             value = yaml.safe_load(raw) if raw.strip() else ""
         except yaml.YAMLError as e:
             raise PipelineError(f"--set {item!r}: value is not valid YAML ({e})") from None
-        _assign(out.setdefault(parts[0], {}), parts[1:], value)
+        assign(out.setdefault(parts[0], {}), parts[1:], value)
     return out
 
 
-def _assign(d: dict, parts: list[str], value: Any) -> None:
+def assign(d: dict, parts: list[str], value: Any) -> None:
     for p in parts[:-1]:
         d = d.setdefault(p, {})
     d[parts[-1]] = value
@@ -75,12 +75,15 @@ def deep_merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, An
     return out
 
 
-def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+def flatten(d: Any, prefix: str = "", scalars_only: bool = False) -> dict[str, Any]:
+    """``{'a': {'b': 1}}`` -> ``{'a.b': 1}``; with ``scalars_only``, non-scalar leaves are dropped."""
     if isinstance(d, Mapping):
         out: dict[str, Any] = {}
         for k, v in d.items():
-            out.update(_flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+            out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k), scalars_only))
         return out
+    if scalars_only and not (isinstance(d, (int, float, str, bool)) or d is None):
+        return {}
     return {prefix: d}
 
 
@@ -147,7 +150,7 @@ class Project:
             if stage not in self.spec.stages:
                 raise PipelineError(f"{origin}: unknown stage {stage!r}; known stages: {', '.join(self.order)}")
             cfg_model = self.module(stage).Config
-            for path in _flatten(section):
+            for path in flatten(section):
                 _check_path(cfg_model, stage, path.split("."), origin)
 
     def config(self, stage: str, profile: str | None, overrides: Mapping[str, Mapping[str, Any]]) -> BaseModel:
@@ -216,7 +219,7 @@ class Project:
             return
         old = ref.get("key_inputs", {})
         reasons = []
-        a, b = _flatten(old.get("config", {})), _flatten(node.key_inputs["config"])
+        a, b = flatten(old.get("config", {})), flatten(node.key_inputs["config"])
         changed = sorted(k for k in set(a) | set(b) if a.get(k, object()) != b.get(k, object()))
         if changed:
             reasons.append("config changed: " + ", ".join(f"{node.stage}.{k}" for k in changed))

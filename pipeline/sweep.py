@@ -13,7 +13,7 @@ from typing import Any
 import blake3
 
 from pipeline.errors import PipelineError
-from pipeline.plan import Node, Project, deep_merge, parse_set
+from pipeline.plan import Node, Project, assign, deep_merge, flatten, parse_set
 from pipeline.store import write_json_atomic
 
 
@@ -46,26 +46,12 @@ def expand(project: Project, name: str, profile: str | None, sets: dict, until: 
         over: dict[str, dict[str, Any]] = {}
         for path, v in values.items():
             stage, *rest = path.split(".")
-            d = over.setdefault(stage, {})
-            for p in rest[:-1]:
-                d = d.setdefault(p, {})
-            d[rest[-1]] = v
+            assign(over.setdefault(stage, {}), rest, v)
         merged = deep_merge(sets, over)
         label = f"sweep:{name}:" + ",".join(f"{k}={v}" for k, v in values.items())
         nodes = project.plan([last], profile, merged, label)
         points.append(Point(values, merged, label, nodes))
     return points, last
-
-
-def _scalars(d: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(d, dict):
-        out: dict[str, Any] = {}
-        for k, v in d.items():
-            out.update(_scalars(v, f"{prefix}.{k}" if prefix else str(k)))
-        return out
-    if isinstance(d, (int, float, str, bool)) or d is None:
-        return {prefix: d}
-    return {}
 
 
 def results_table(project: Project, name: str, points: list[Point]) -> Path:
@@ -75,7 +61,7 @@ def results_table(project: Project, name: str, points: list[Point]) -> Path:
         node = pt.last
         mpath = project.store.path(node.stage, node.key) / "metrics.json"
         try:
-            metrics = _scalars(json.loads(mpath.read_text()))
+            metrics = flatten(json.loads(mpath.read_text()), scalars_only=True)
         except (OSError, ValueError):
             metrics = {}
         rows.append({**{k: v for k, v in pt.values.items()}, **metrics, "key": node.short})
