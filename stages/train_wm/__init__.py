@@ -1,0 +1,183 @@
+"""train_wm: the action world model and the text world model, with done heads, and their evaluation.
+
+Inputs:
+    collect -- episodes (``stages.collect.dataset.Dataset``): actions (T, 7) delta-EE, the simulator's
+    success flag per frame (done labels: done[t] = success[t]), instruction, split ('ind' | 'ood'),
+    and the real frames of evaluation episodes.
+    tokenize -- the token store (T+1, h, w) of every episode, the tokenizer (to decode predicted
+    frames for metrics and the figure) and its held-out IND episode list (reused here).
+
+Outputs (in the artifact directory):
+    action_wm.pt, text_wm.pt   checkpoints: architecture spec, weights, action clip range and
+                               normalisation (buffers), decoding settings; read with
+                               ``stages.train_wm.rollout.load_world_model(dir, kind)``
+    text_embeddings.json       {instruction: 384-d MiniLM embedding} of every instruction
+    split.json                 train / held-out IND / OOD episode ids
+    metrics.json               per model: loss history, wall time; action WM open-loop PSNR / SSIM /
+                               LPIPS at horizons 1, 5, 15 on held-out IND and OOD next to the
+                               copy-last-frame baseline and the tokenizer ceiling, controllability
+                               (true vs shuffled actions), extreme-action rollouts; done-head AUROC,
+                               precision / recall at ``done_threshold``, Brier, ECE for both models
+    frames.png                 real vs predicted frame strips (held-out IND and OOD)
+
+Key includes:
+    this config (architecture, optimisation, decoding, evaluation sizes, seed) and the keys of the
+    collect and tokenize artifacts. Device is not part of the key.
+
+Toy profile:
+    dim 32, 2 blocks, window 4, 120 steps of 4 clips per model: both models train for real and
+    are evaluated in well under a minute on 2 cores; the numbers are not meaningful.
+"""
+from __future__ import annotations
+
+import json
+import time
+from typing import Literal
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from stages.train_wm.data import ClipSampler, load_episodes, split_episodes
+from stages.train_wm.evaluate import (HORIZONS, decoded, done_head_eval, extreme_action_eval, horizon_eval,
+                                      real_images, rollout_starts)
+from stages.train_wm.figure import frame_strips
+from stages.train_wm.model import WMSpec, WorldModelNet
+from stages.train_wm.rollout import CHECKPOINTS, TEXT_EMBEDDINGS, WorldModel, save_world_model
+from stages.train_wm.train import train_world_model
+
+
+class Config(BaseModel):
+    """train_wm stage configuration (defaults sized for the ``small`` profile)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    seed: int = Field(0, description="seed for initialisation, clip sampling, masking and evaluation choices")
+    dim: int = Field(128, ge=8, description="transformer width")
+    depth: int = Field(3, ge=1, description="spatial-temporal blocks in the backbone")
+    heads: int = Field(4, ge=1, description="attention heads")
+    head_depth: int = Field(1, ge=1, description="spatial blocks in the MaskGIT decoding head")
+    mlp_ratio: int = Field(4, ge=1, description="MLP hidden width as a multiple of dim")
+    window: int = Field(8, ge=2, description="frames of temporal context (training clip length, KV cache size)")
+    control_tokens: int = Field(4, ge=1, description="memory tokens the control (action / text) is projected into")
+    steps: int = Field(800, ge=1, description="optimisation steps per world model")
+    batch_size: int = Field(8, ge=1, description="clips per optimisation step")
+    lr: float = Field(1e-3, gt=0, description="AdamW peak learning rate")
+    weight_decay: float = Field(0.05, ge=0, description="AdamW weight decay of matrices")
+    done_loss: Literal["bce", "rmse"] = Field("bce", description="done-head loss: BCE (calibrated) or the paper's RMSE")
+    done_weight: float = Field(1.0, ge=0, description="weight of the done loss next to the token cross-entropy")
+    changed_weight: float = Field(1.0, ge=1, description="cross-entropy weight of target tokens that changed since the previous frame")
+    decode_steps: int = Field(2, ge=1, description="MaskGIT passes per predicted frame in rollouts")
+    temperature: float = Field(0.0, ge=0, description="token sampling temperature in rollouts (0 = greedy)")
+    holdout_fraction: float = Field(0.1, ge=0, lt=1, description="IND episodes held out if tokenize has no split.json")
+    eval_episodes: int = Field(16, ge=1, description="episodes per split (held-out IND, OOD) used for evaluation")
+    eval_starts: int = Field(2, ge=1, description="open-loop start frames per evaluation episode")
+    done_threshold: float = Field(0.5, gt=0, lt=1, description="theta for done precision / recall")
+    extreme_scale: float = Field(10.0, gt=1, description="extreme-action test: multiple of the data's action bound")
+
+
+def _spec(cfg: Config, kind: str, vocab: int, grid: tuple[int, int]) -> WMSpec:
+    return WMSpec(kind=kind, vocab_size=vocab, grid=grid, dim=cfg.dim, depth=cfg.depth, heads=cfg.heads,
+                  head_depth=cfg.head_depth, mlp_ratio=cfg.mlp_ratio, window=cfg.window,
+                  control_tokens=cfg.control_tokens)
+
+
+def run(ctx) -> None:
+    from stages.collect.dataset import Dataset
+    from stages.common.text_encoder import encode_texts
+    from stages.tokenize.store import TokenStore
+    from stages.tokenize.tokenizer import load_tokenizer
+
+    cfg: Config = ctx.config
+    if ctx.device == "cpu":
+        torch.set_num_threads(1)  # measured 2-10x faster than 2 threads for models this size
+    torch.manual_seed(cfg.seed)
+    collect_dir, tok_dir = ctx.input("collect"), ctx.input("tokenize")
+    store = TokenStore(tok_dir)
+    n_eps = len(Dataset(collect_dir).episodes)
+    with ctx.progress(n_eps, "train_wm: load episodes", unit="ep") as bar:
+        episodes = load_episodes(collect_dir, tok_dir, bar)
+    split_file = tok_dir / "split.json"
+    heldout_ids = set(json.loads(split_file.read_text()).get("heldout", [])) if split_file.is_file() else None
+    train_eps, held_eps, ood_eps = split_episodes(episodes, heldout_ids, cfg.holdout_fraction, cfg.seed)
+    (ctx.out / "split.json").write_text(json.dumps({"train": [e.episode_id for e in train_eps],
+                                                    "heldout": [e.episode_id for e in held_eps],
+                                                    "ood": [e.episode_id for e in ood_eps]}, indent=1) + "\n")
+    ctx.log.info("train_wm: %d IND train, %d held-out IND, %d OOD episodes", len(train_eps), len(held_eps), len(ood_eps))
+
+    instructions = sorted({e.instruction for e in episodes})
+    text_emb = dict(zip(instructions, encode_texts(instructions)))
+    (ctx.out / TEXT_EMBEDDINGS).write_text(json.dumps({k: v.tolist() for k, v in text_emb.items()}) + "\n")
+
+    vocab, grid = 2**store.bits, tuple(store.grid)
+    train_actions = torch.from_numpy(np.concatenate([e.actions for e in train_eps]))
+    metrics: dict = {"episodes/train": len(train_eps), "episodes/heldout_ind": len(held_eps),
+                     "episodes/ood": len(ood_eps), "vocab_size": vocab, "grid": list(grid)}
+    models = {}
+    for i, kind in enumerate(("action", "text")):
+        net = WorldModelNet(_spec(cfg, kind, vocab, grid)).to(ctx.device)
+        net.set_action_stats(train_actions.to(ctx.device))
+        sampler = ClipSampler(train_eps, cfg.window, text_emb, cfg.seed + 17 * i)
+        with ctx.progress(cfg.steps, f"train_wm: {kind} WM", unit="step") as bar:
+            result = train_world_model(net, sampler, steps=cfg.steps, batch_size=cfg.batch_size, lr=cfg.lr,
+                                       weight_decay=cfg.weight_decay, done_weight=cfg.done_weight,
+                                       done_kind=cfg.done_loss, seed=cfg.seed + i, device=ctx.device,
+                                       changed_weight=cfg.changed_weight,
+                                       progress=bar, log=ctx.log, desc=f"{kind} WM")
+        save_world_model(net, ctx.out / CHECKPOINTS[kind],
+                         {"decode_steps": cfg.decode_steps, "temperature": cfg.temperature})
+        models[kind] = WorldModel(net, cfg.decode_steps, cfg.temperature, {k: v.tolist() for k, v in text_emb.items()})
+        metrics[f"{kind}_wm/params"] = sum(p.numel() for p in net.parameters())
+        metrics[f"{kind}_wm/train_seconds"] = result["seconds"]
+        metrics[f"{kind}_wm/final_ce"] = result["final"]["ce"]
+        metrics[f"{kind}_wm/final_token_acc"] = result["final"]["acc"]
+        metrics[f"{kind}_wm/final_done_loss"] = result["final"]["done"]
+        metrics[f"{kind}_wm/history"] = result["history"]
+
+    t0 = time.perf_counter()
+    metrics.update(_evaluate(ctx, cfg, models, held_eps, ood_eps, text_emb, load_tokenizer(tok_dir, ctx.device),
+                             Dataset(collect_dir)))
+    metrics["eval_seconds"] = time.perf_counter() - t0
+    ctx.write_metrics(metrics)
+
+
+def _evaluate(ctx, cfg: Config, models: dict, held_eps: list, ood_eps: list, text_emb: dict, tok, ds) -> dict:
+    """All evaluation metrics (see the module docstring) and ``frames.png``."""
+    rng = np.random.default_rng(cfg.seed)
+    metrics, panels = {}, []
+    for split, eps in (("heldout_ind", held_eps), ("ood", ood_eps)):
+        if not eps:
+            ctx.log.warning("train_wm: no %s episodes, no metrics for that split", split)
+            continue
+        eps = [eps[i] for i in sorted(rng.choice(len(eps), size=min(cfg.eval_episodes, len(eps)), replace=False))]
+        for kind, wm in models.items():
+            for k, v in done_head_eval(wm, eps, cfg.done_threshold, text_emb).items():
+                metrics[f"{kind}_wm/{split}/done/{k}"] = v
+        starts = rollout_starts(eps, max(HORIZONS), cfg.eval_starts, rng)
+        if not starts:
+            ctx.log.warning("train_wm: %s episodes are shorter than %d steps, no horizon metrics", split, max(HORIZONS))
+            continue
+        used = sorted({i for i, _ in starts})
+        images = {}
+        with ctx.progress(len(used), f"train_wm: {split} frames", unit="ep") as bar:
+            for i in used:
+                ep = ds.load(eps[i].episode_id)
+                images[eps[i].episode_id] = real_images(tok, ep.third, ep.wrist)
+                bar.update(1)
+        rows = {}
+        for kind, wm in models.items():
+            m, strip = horizon_eval(wm, tok, eps, images, starts, text_emb, ctx.device,
+                                    controllability=(kind == "action"))
+            metrics.update({f"{kind}_wm/{split}/{k}": v for k, v in m.items()})
+            i, s = strip["start"]
+            if not rows:
+                rows["real"] = images[eps[i].episode_id][s : s + max(HORIZONS) + 1]
+            start = decoded(tok, torch.from_numpy(eps[i].tokens[s]).view(1, *wm.spec.grid))
+            rows[f"{kind} WM"] = torch.cat([start, decoded(tok, strip["pred"])])
+        panels.append((f"{split} {eps[i].episode_id.split('.')[0]}", rows))
+        for k, v in extreme_action_eval(models["action"], tok, eps, starts, max(HORIZONS), cfg.extreme_scale,
+                                        cfg.seed).items():
+            metrics[f"action_wm/{split}/extreme_actions/{k}"] = v
+    if panels:
+        frame_strips(panels, ctx.out / "frames.png")
+    return metrics

@@ -1,0 +1,85 @@
+"""Training loop of one world model: masked-token cross-entropy on next frames plus the done loss."""
+from __future__ import annotations
+
+import math
+import time
+
+import torch
+import torch.nn.functional as F
+
+from stages.train_wm.data import ClipSampler, random_mask
+from stages.train_wm.model import WorldModelNet
+
+
+def done_loss(logit: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, kind: str) -> torch.Tensor:
+    """Done loss over valid frames. logit/target/valid (B, T). ``bce`` or the paper's ``rmse`` on probabilities."""
+    denom = valid.sum().clamp_min(1.0)
+    if kind == "bce":
+        return (F.binary_cross_entropy_with_logits(logit, target, reduction="none") * valid).sum() / denom
+    if kind == "rmse":
+        return torch.sqrt(((torch.sigmoid(logit) - target) ** 2 * valid).sum() / denom + 1e-8)
+    raise ValueError(f"done loss must be 'bce' or 'rmse', got {kind!r}")
+
+
+def losses(net: WorldModelNet, batch: dict, gen: torch.Generator, done_kind: str,
+           changed_weight: float = 1.0) -> dict[str, torch.Tensor]:
+    """Token cross-entropy over hidden target tokens, token accuracy, and the done loss of one batch.
+
+    ``changed_weight`` multiplies the cross-entropy of target tokens that differ from the previous
+    frame's token at that position (the few tokens that carry the action's effect).
+    """
+    tokens, valid = batch["tokens"], batch["valid"]  # (B, T+1, N), (B, T)
+    b, t1, n = tokens.shape
+    mask = random_mask((b, t1 - 1, n), gen, tokens.device)  # (B, T, N)
+    control = batch["actions"] if net.spec.kind == "action" else batch["text"]
+    logits, done = net(tokens, control, mask)  # (B, T, N, V), (B, T)
+    target = tokens[:, 1:]
+    changed = (target != tokens[:, :-1]).float()  # (B, T, N)
+    hidden = mask.float() * valid[..., None]  # (B, T, N)
+    weight = hidden * (1.0 + (changed_weight - 1.0) * changed)
+    ce = F.cross_entropy(logits.flatten(0, 2), target.flatten(), reduction="none").view(b, t1 - 1, n)
+    ce = (ce * weight).sum() / weight.sum().clamp_min(1.0)
+    acc = ((logits.argmax(-1) == target).float() * hidden).sum() / hidden.sum().clamp_min(1.0)
+    dl = done_loss(done, batch["done"], valid, done_kind)
+    return {"ce": ce, "done": dl, "acc": acc}
+
+
+def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, batch_size: int, lr: float,
+                      weight_decay: float, done_weight: float, done_kind: str, seed: int, device,
+                      changed_weight: float = 1.0,
+                      progress=None, log=None, desc: str = "") -> dict:
+    """Train ``net`` in place with AdamW (linear warm-up, cosine decay); returns the loss history and time."""
+    net.train()
+    gen = torch.Generator().manual_seed(seed)
+    decay = [p for p in net.parameters() if p.dim() >= 2]
+    no_decay = [p for p in net.parameters() if p.dim() < 2]
+    opt = torch.optim.AdamW([{"params": decay, "weight_decay": weight_decay},
+                             {"params": no_decay, "weight_decay": 0.0}], lr=lr, betas=(0.9, 0.95))
+    warmup = max(1, steps // 20)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: min(1.0, (s + 1) / warmup) * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(s / steps, 1.0)))))
+    history, t0, ema = [], time.perf_counter(), None
+    # bf16 autocast only on CUDA: on this CPU bf16 matmuls ran at ~1 GFLOP/s (DESIGN.md section 5)
+    use_bf16 = torch.device(device).type == "cuda"
+    for step in range(steps):
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_bf16):
+            out = losses(net, sampler.sample(batch_size, device), gen, done_kind, changed_weight)
+        loss = out["ce"] + done_weight * out["done"]
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"{desc} world-model loss became {loss.item()} at step {step}")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        vals = {k: float(v.detach()) for k, v in out.items()}
+        ema = vals if ema is None else {k: 0.9 * ema[k] + 0.1 * vals[k] for k in vals}
+        if step % max(1, steps // 50) == 0 or step == steps - 1:
+            history.append({"step": step, **vals})
+        if progress is not None:
+            progress.update(1)
+            progress.postfix(ce=f"{ema['ce']:.3f}", acc=f"{ema['acc']:.2f}", done=f"{ema['done']:.3f}")
+        if log is not None and (step % max(1, steps // 10) == 0 or step == steps - 1):
+            log.info("%s step %d/%d ce %.4f acc %.3f done %.4f", desc, step, steps, ema["ce"], ema["acc"], ema["done"])
+    net.eval()
+    return {"history": history, "seconds": time.perf_counter() - t0, "final": ema}
