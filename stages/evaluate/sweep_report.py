@@ -27,7 +27,7 @@ def report(points: list[dict], out: Path) -> Path:
         tasks = tasks or list(rl.get("tasks", []))
         for k, v in rl.items():
             if k.startswith("diagnostics/") and k.endswith("spearman_progress"):
-                diag.setdefault(k, []).append(v)
+                diag.setdefault(k, []).append(np.nan if v is None else float(v))  # null: undefined (constant reward)
         if "evaluate" not in arts:
             continue
         for r in _read_jsonl(arts["evaluate"] / "results.jsonl"):
@@ -60,8 +60,13 @@ def report(points: list[dict], out: Path) -> Path:
                          html_table(head, seed_rows)))
     if diag:
         head = ["metric", "runs", "mean", "sd"]
-        body = [[k.removeprefix("diagnostics/"), str(len(v)), f"{np.nanmean(v):.3f}",
-                 f"{np.nanstd(v, ddof=1):.3f}" if len(v) > 1 else "-"] for k, v in sorted(diag.items())]
+        body = []
+        for k, v in sorted(diag.items()):
+            v = np.asarray(v)
+            ok = v[~np.isnan(v)]
+            body.append([k.removeprefix("diagnostics/"), f"{len(ok)} of {len(v)}",
+                         f"{ok.mean():.3f}" if len(ok) else "undefined (constant reward)",
+                         f"{ok.std(ddof=1):.3f}" if len(ok) > 1 else "-"])
         sections.append(("Reward diagnostics: Spearman correlation of reward with progress on held-out successful "
                          "episodes", markdown_table(head, body), html_table(head, body)))
     write_report(out, "RoboScape-R sweep report", sections or [("No results", "No point produced rl or evaluate metrics.", None)])
