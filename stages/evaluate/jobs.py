@@ -16,7 +16,8 @@ def scenes_by_split(ctx, cfg, tasks: list[str]) -> dict[tuple[str, str], list[di
     catalog = read_scenes_json(ctx.input("collect") / "scenes.json")
     envs = list_environments(ctx.input("collect"), tasks)
     tables = {s.table.name: s.table.color for s in catalog.values()}
-    extra = [to_scene(e, i, tables) for i, e in enumerate(cfg.extra_scenes)]
+    sizes = {s.object.name.split()[0]: s.object.half_size for s in catalog.values()}  # names read "<size> <color> <shape>"
+    extra = [to_scene(e, i, tables, sizes) for i, e in enumerate(cfg.extra_scenes)]
     out = {}
     for task in tasks:
         out[(task, "ind")] = [catalog[e.scene_id].to_dict() for e in envs if e.task == task and e.split == "ind"]

@@ -2,10 +2,11 @@
 
 An extra scene is plain data, e.g. (YAML)::
 
-    - {shape: cylinder, size: large, color: [0.9, 0.5, 0.1], color_name: orange, container: bowl, table: dark}
+    - {shape: cylinder, size: large, color: [0.9, 0.5, 0.1], color_name: orange, container: bowl, table: dark grey}
 
-``size`` is a name from the collect catalog's sizes or a half extent in metres; ``table`` a table
-name of the catalog or an RGB triple. Extra scenes are evaluated as their own split, ``extra``.
+``size`` is a size name of the collect catalog (``small``, ``large``) or a half extent in metres;
+``table`` a table name of the catalog or an RGB triple. Extra scenes are evaluated as their own
+split, ``extra``.
 """
 from __future__ import annotations
 
@@ -14,9 +15,6 @@ from typing import Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field
-
-SIZES = {"small": 0.018, "large": 0.025}
-
 
 class ExtraScene(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -43,12 +41,17 @@ def load_extra_scenes(value) -> list:
     return value
 
 
-def to_scene(extra: ExtraScene, index: int, tables: dict) -> dict:
-    """The collect catalog's scene dict for an extra scene."""
+def to_scene(extra: ExtraScene, index: int, tables: dict, sizes: dict[str, float]) -> dict:
+    """The collect catalog's scene dict for an extra scene; ``sizes``/``tables`` come from the catalog."""
     from stages.collect.catalog import ObjectSpec, Scene, TableSpec
 
-    half = SIZES[extra.size] if isinstance(extra.size, str) and extra.size in SIZES else float(extra.size)
-    size_name = extra.size if isinstance(extra.size, str) else ("large" if half >= 0.022 else "small")
+    if isinstance(extra.size, str):
+        if extra.size not in sizes:
+            raise ValueError(f"extra scene {index}: unknown size {extra.size!r}; catalog sizes: {sorted(sizes)} or metres")
+        half, size_name = sizes[extra.size], extra.size
+    else:
+        half = float(extra.size)
+        size_name = min(sizes, key=lambda k: abs(sizes[k] - half))  # the nearest catalog word for the instruction
     if isinstance(extra.table, str):
         if extra.table not in tables:
             raise ValueError(f"extra scene {index}: unknown table {extra.table!r}; catalog tables: {sorted(tables)}")
