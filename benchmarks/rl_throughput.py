@@ -5,7 +5,9 @@ World-model side: the action WM at the ``small`` profile's size (random weights:
 depend on them), ``num_envs`` batched envs, reward = the ``wm`` module (done head + LPIPS to a
 cached goal, so every step decodes its frame). Simulator side: the push task with the low-poly
 Panda, ``sim_envs`` envs in a DummyVecEnv, reward = the task's rule reward; every frame goes
-through the same tokenizer. Both use the same PPO settings and policy.
+through the same tokenizer. Both use the same PPO settings and policy. An env step is a policy step
+in both: one world-model frame = ``frame_skip`` control steps, which the simulator env runs by
+repeating the action (stages/rl/sim_env.py), so both advance the same robot time per step.
 
     .venv/bin/python benchmarks/rl_throughput.py [--wm-steps 2048] [--sim-steps 256]
 """
@@ -44,7 +46,7 @@ def action_wm(tok):
     torch.manual_seed(0)
     net = WorldModelNet(WMSpec(kind="action", vocab_size=tok.vocab_size, grid=tok.grid, dim=c.dim, depth=c.depth,
                                heads=c.heads, head_depth=c.head_depth, mlp_ratio=c.mlp_ratio, window=c.window,
-                               control_tokens=c.control_tokens))
+                               control_tokens=c.control_tokens, frame_skip=c.frame_skip))
     net.set_action_stats(torch.rand(256, 7) * 2 - 1)
     return WorldModel(net.eval(), decode_steps=c.decode_steps)
 
@@ -102,16 +104,18 @@ def main() -> None:
                               max_steps=50, theta_done=0.999, seed=0)
     wm_rate = timed_learn(wm_env, args.wm_steps, args.num_envs)
 
-    sim_env = DummyVecEnv([lambda i=i: SimTaskEnv([SimSpec("push", scene.to_dict())], obs_fn, max_steps=50, seed=i)
-                           for i in range(args.sim_envs)])
+    k = wm.spec.frame_skip
+    sim_env = DummyVecEnv([lambda i=i: SimTaskEnv([SimSpec("push", scene.to_dict())], obs_fn, max_steps=50, seed=i,
+                                                  action_repeat=k) for i in range(args.sim_envs)])
     sim_rate = timed_learn(sim_env, args.sim_steps, args.sim_envs)
     sim_env.close()
 
-    print("PPO env steps/s, updates included (one run, 1 torch thread, this machine)")
+    print(f"PPO env (= policy) steps/s, updates included (one run, 1 torch thread, this machine); "
+          f"one step = {k} control steps in both envs")
     print(f"  world-model env: {args.num_envs} batched envs, small-profile action WM "
           f"(dim {wm.spec.dim}, depth {wm.spec.depth}, {wm.spec.tokens} tokens/frame, {wm.decode_steps} decoding passes), "
           f"wm reward with LPIPS: {wm_rate:.1f}")
-    print(f"  ManiSkill env:   {args.sim_envs} envs (push, low-poly Panda, 64x64 x 2 views, tokenizer obs), rule reward: {sim_rate:.1f}")
+    print(f"  ManiSkill env:   {args.sim_envs} envs (push, low-poly Panda, 64x64 x 2 views, tokenizer obs), rule reward: {sim_rate:.1f} ({sim_rate * k:.1f} control steps/s)")
     print(f"  ratio world model / ManiSkill: {wm_rate / sim_rate:.2f}")
 
 

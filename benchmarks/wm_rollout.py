@@ -10,6 +10,12 @@ Prints, for the toy and small action-WM sizes at batch 1, 16 and 64:
     (target >= 50%), and of the rate of a linear layer of the model's own shape;
 then ManiSkill PickCube-v1 env steps/s at 64x64 RGB (low-poly Panda unless --stock) and the ratio.
 
+What is compared: one world-model step is ``frame_skip`` control steps of the simulator (train_wm's
+``frame_skip``, default 4; stages/common/frame_skip.py), and the RL policy acts once per step in
+both environments (the simulator env repeats the action, stages/rl/sim_env.py). So the ratio is
+given per policy step (the same 0.2 s of robot time in both): WM steps/s over simulator control
+steps/s divided by frame_skip; the per-control-step ratio is printed too.
+
     .venv/bin/python benchmarks/wm_rollout.py            # ~3-4 minutes on 2 cores
     .venv/bin/python benchmarks/wm_rollout.py --no-sim   # world model only
 """
@@ -141,6 +147,8 @@ def main() -> None:
     ap.add_argument("--no-sim", action="store_true", help="skip the ManiSkill measurement")
     ap.add_argument("--stock", action="store_true", help="stock Panda meshes instead of the low-poly ones")
     ap.add_argument("--sim-steps", type=int, default=200)
+    ap.add_argument("--frame-skip", type=int, default=Config().frame_skip,
+                    help="control steps per world-model step (train_wm.frame_skip)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -152,7 +160,7 @@ def main() -> None:
     sizes: dict = {"toy": WMSpec(kind="action", vocab_size=vocab, grid=grid, **TOY),
              "small": WMSpec(kind="action", vocab_size=vocab, grid=grid, dim=small.dim, depth=small.depth,
                              heads=small.heads, head_depth=small.head_depth, mlp_ratio=small.mlp_ratio,
-                             window=small.window, control_tokens=small.control_tokens)}
+                             window=small.window, control_tokens=small.control_tokens, frame_skip=small.frame_skip)}
     mm = matmul_rate()
     best: dict[str, dict] = {}
     print(f"threads=1  fp32 matmul 1024^3: {mm / 1e9:.1f} GFLOP/s   decode_steps={args.decode_steps}  "
@@ -174,11 +182,15 @@ def main() -> None:
                 best[name] = r
     if not args.no_sim:
         sps, mesh = bench_sim(args.stock, args.sim_steps)
-        print(f"\nManiSkill PickCube-v1, 64x64 RGB, physx_cpu + cpu render, {mesh} Panda: {sps:.1f} env steps/s")
+        k = args.frame_skip
+        print(f"\nManiSkill PickCube-v1, 64x64 RGB, physx_cpu + cpu render, {mesh} Panda: {sps:.1f} control steps/s "
+              f"= {sps / k:.1f} policy steps/s at frame_skip {k}")
         for name in ("toy", "small"):
             r = best[name]
-            print(f"{name} WM at batch {r['batch']} / simulator: WM only {r['wm_sps'] / sps:.1f}x, "
-                  f"+decode {r['dec_sps'] / sps:.1f}x, +decode+reward {r['full_sps'] / sps:.1f}x")
+            print(f"{name} WM at batch {r['batch']} / simulator, per policy step (frame_skip {k}): "
+                  f"WM only {r['wm_sps'] / (sps / k):.1f}x, +decode {r['dec_sps'] / (sps / k):.1f}x, "
+                  f"+decode+reward {r['full_sps'] / (sps / k):.1f}x   "
+                  f"(per control step: {r['wm_sps'] / sps:.1f}x / {r['dec_sps'] / sps:.1f}x / {r['full_sps'] / sps:.1f}x)")
 
 
 if __name__ == "__main__":

@@ -48,7 +48,8 @@ class Config(BaseModel):
 
     seed: int = Field(0, description="base of the evaluation episodes' seeds (kept far from collection seeds)")
     episodes: int = Field(10, ge=1, description="episodes per (policy, task, split)")
-    max_steps: int = Field(200, ge=1, description="episode horizon in the simulator (planner demos take ~100-280 steps)")
+    max_steps: int = Field(75, ge=1, description="episode horizon in policy steps of frame_skip control steps each "
+                           "(planner demos take ~100-280 control steps = 25-70 policy steps at frame_skip 4)")
     policies: list[Literal["sft", "ppo"]] = Field(["sft", "ppo"], min_length=1, description="which rl outputs to evaluate")
     splits: list[Literal["ind", "ood", "extra"]] = Field(["ind", "ood", "extra"], min_length=1)
     snapshot_episodes: int = Field(4, ge=0, description="episodes per (snapshot, split) for success vs training time")

@@ -18,7 +18,8 @@ class Job:
     scene: dict
     split: str  # "ind" | "ood" | "extra"
     seeds: list[int]
-    max_steps: int
+    max_steps: int  # policy steps
+    action_repeat: int = 1  # control steps per policy step (the world model's frame skip)
     image_size: int = 64
     robot_mesh: str = "lowpoly"
     record: list[int] = field(default_factory=list)  # seeds whose third-view frames are returned
@@ -40,7 +41,8 @@ def run_job(job: Job) -> list[dict]:
     obs_fn = ObservationFn(tok, job.text_embeddings)
     model = load_policy(job.policy_path, job.device)
     spec = SimSpec(job.task, job.scene)
-    env = SimTaskEnv([spec], obs_fn, max_steps=job.max_steps, image_size=job.image_size, robot_mesh=job.robot_mesh)
+    env = SimTaskEnv([spec], obs_fn, max_steps=job.max_steps, image_size=job.image_size, robot_mesh=job.robot_mesh,
+                     action_repeat=job.action_repeat)
     out = []
     try:
         for seed in job.seeds:
@@ -56,7 +58,7 @@ def run_job(job: Job) -> list[dict]:
             res = {"policy": job.policy, "task": job.task, "scene_id": job.scene["scene_id"], "split": job.split,
                    "seed": seed, "success": success, "steps": steps, "instruction": env.instruction}
             if env.keep_frames:
-                res["frames"] = np.stack([f[0] for f in env.frames])  # (steps+1, H, W, 3) third view
+                res["frames"] = np.stack([f[0] for f in env.frames])  # (control steps+1, H, W, 3) third view
             out.append(res)
     finally:
         env.close()

@@ -33,8 +33,8 @@ def _text(ctx) -> dict:
 
 
 def _spread(policy: str, path: Path, task: str, split: str, scenes: list[dict], n: int, seed0: int, ctx, cfg,
-            text: dict, record: bool) -> list[Job]:
-    """``n`` episodes round-robin over ``scenes``, one Job per scene."""
+            text: dict, record: bool, repeat: int) -> list[Job]:
+    """``n`` episodes round-robin over ``scenes``, one Job per scene; ``repeat`` = control steps per policy step."""
     seeds: dict[str, list[int]] = {}
     for i in range(n):
         seeds.setdefault(scenes[i % len(scenes)]["scene_id"], []).append(seed0 + i)
@@ -42,8 +42,8 @@ def _spread(policy: str, path: Path, task: str, split: str, scenes: list[dict], 
     jobs = []
     for k, (sid, ss) in enumerate(sorted(seeds.items())):
         jobs.append(Job(policy, str(path), str(ctx.input("tokenize")), text, task, by_id[sid], split, ss,
-                        cfg.max_steps, cfg.image_size, cfg.robot_mesh, record=[ss[0]] if record and k == 0 else [],
-                        device=ctx.device))
+                        cfg.max_steps, repeat, cfg.image_size, cfg.robot_mesh,
+                        record=[ss[0]] if record and k == 0 else [], device=ctx.device))
     return jobs
 
 
@@ -65,7 +65,8 @@ def build_jobs(ctx, cfg, rl_metrics: dict) -> list[Job]:
                 record = cfg.videos and split in ("ind", "ood") and not recorded
                 recorded = recorded or record
                 seed0 = SEED_BASE + cfg.seed * 100_000 + ti * 10_000 + ("ind", "ood", "extra").index(split) * 1_000
-                jobs += _spread(policy, path, task, split, scenes[(task, split)], cfg.episodes, seed0, ctx, cfg, text, record)
+                jobs += _spread(policy, path, task, split, scenes[(task, split)], cfg.episodes, seed0, ctx, cfg, text, record,
+                                int(rl_metrics.get("frame_skip", 1)))
     return jobs
 
 
@@ -87,5 +88,6 @@ def snapshot_jobs(ctx, cfg, rl_metrics: dict) -> list[Job]:
                 if n and scenes[(task, split)]:
                     seed0 = SEED_BASE + 50_000 + cfg.seed * 100_000 + ti * 1_000 + (split == "ood") * 500
                     jobs += _spread(f"ppo@{snap['timesteps']}", ctx.input("rl") / snap["path"], task, split,
-                                    scenes[(task, split)], n, seed0, ctx, cfg, text, False)
+                                    scenes[(task, split)], n, seed0, ctx, cfg, text, False,
+                                    int(rl_metrics.get("frame_skip", 1)))
     return jobs

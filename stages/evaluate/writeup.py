@@ -28,6 +28,7 @@ def write_everything(ctx, cfg, rl_metrics: dict, results: list[dict]) -> dict:
     main = [r for r in results if "@" not in r["policy"]]
     counts = tally(main)
     metrics: dict = {"reward": reward, "tasks": tasks, "episodes_per_cell": cfg.episodes, "max_steps": cfg.max_steps,
+                     "frame_skip": int(rl_metrics.get("frame_skip", 1)),
                      "extra_scenes": len(cfg.extra_scenes)}
     for (policy, task, split), (k, n) in sorted(counts.items()):
         p, lo, hi = wilson(k, n)
@@ -40,7 +41,8 @@ def write_everything(ctx, cfg, rl_metrics: dict, results: list[dict]) -> dict:
     table_name = "Table 1 layout: success rate in the simulator" if len(tasks) == 1 else \
         f"Table 2 layout: one multi-task policy ({', '.join(tasks)})"
     note = (f"Success rate [95% Wilson interval] (successes/episodes); {cfg.episodes} episodes per task and split, "
-            f"horizon {cfg.max_steps} steps, ManiSkill's own success check. IND: the training scenes with new initial "
+            f"horizon {cfg.max_steps} policy steps of {rl_metrics.get('frame_skip', 1)} control steps each, "
+            f"ManiSkill's own success check. IND: the training scenes with new initial "
             f"states; OOD: held-out scenes (unseen objects, unseen object-container pairs); extra: user-added scenes.")
     sections = [(table_name, note + "\n\n" + markdown_table(header, body), f"<p>{note}</p>" + html_table(header, body))]
 
@@ -93,6 +95,7 @@ def write_everything(ctx, cfg, rl_metrics: dict, results: list[dict]) -> dict:
 def _extreme_actions(ctx, out, steps: int = 8) -> str | None:
     """Rows: true actions, zero, and +-10x the data's action bound, from one held-out start frame."""
     from stages.collect.dataset import Dataset
+    from stages.common.frame_skip import compose_actions
     from stages.tokenize.store import TokenStore
     from stages.tokenize.tokenizer import load_tokenizer
     from stages.train_wm.rollout import load_world_model
@@ -100,13 +103,14 @@ def _extreme_actions(ctx, out, steps: int = 8) -> str | None:
     split = json.loads((ctx.input("train_wm") / "split.json").read_text())
     ids = split["heldout"] or split["train"]
     ds = Dataset(ctx.input("collect"))
-    ep_id = next((i for i in ids if ds.load(i).action.shape[0] >= steps), None)
+    wm = load_world_model(ctx.input("train_wm"), "action", ctx.device)
+    k = wm.spec.frame_skip
+    ep_id = next((i for i in ids if ds.load(i).action.shape[0] >= steps * k), None)
     if ep_id is None:
         return None
     tok = load_tokenizer(ctx.input("tokenize"), ctx.device)
-    wm = load_world_model(ctx.input("train_wm"), "action", ctx.device)
     tokens = np.asarray(TokenStore(ctx.input("tokenize")).episode(ep_id), dtype=np.int64)
-    true = torch.as_tensor(ds.load(ep_id).action[:steps])
+    true = torch.as_tensor(compose_actions(ds.load(ep_id).action, k)[:steps])
     bound = torch.maximum(wm.net.action_high.abs(), wm.net.action_low.abs()).cpu()
     plans = {"true actions": true, "zero": torch.zeros_like(true), "+10x bound": (10 * bound).expand_as(true).clone(),
              "-10x bound": (-10 * bound).expand_as(true).clone()}

@@ -53,7 +53,7 @@ class Config(BaseModel):
     goal_mode: Literal["generated", "ground_truth"] = Field(
         "generated", description="generated: imagined by the text WM (paper); ground_truth: last frame of a successful demo")
     theta: float = Field(0.5, gt=0, lt=1, description="done-head threshold that ends an imagined rollout")
-    max_steps: int = Field(40, ge=1, description="cap on imagined steps per candidate")
+    max_steps: int = Field(60, ge=1, description="cap on imagined world-model steps per candidate (x frame_skip control steps)")
     candidates: int = Field(4, ge=1, description="imagined rollouts per environment; the most confident is kept")
     temperature: float = Field(1.0, ge=0, description="token sampling temperature of the candidates (0 = greedy)")
     batch_size: int = Field(64, ge=1, description="imagined rollouts stepped together")

@@ -67,7 +67,8 @@ class Config(BaseModel):
         "similarity", description="similarity: 1 - LPIPS to the goal; potential: gamma*Phi(s') - Phi(s), Phi = -LPIPS")
     # environment
     theta_done: float = Field(0.5, gt=0, lt=1, description="done-head threshold that terminates a WM episode")
-    max_episode_steps: int = Field(200, ge=1, description="truncation horizon in the world model (planner demos take ~100-280 steps)")
+    max_episode_steps: int = Field(75, ge=1, description="truncation horizon in world-model steps (= policy steps; "
+                                   "planner demos take ~100-280 control steps = 25-70 steps at frame_skip 4)")
     num_envs: int = Field(16, ge=1, description="world-model environments stepped as one batch")
     sim_envs: int = Field(2, ge=1, description="simulator environments for reward: rule")
     # PPO

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from stages.common.frame_skip import compose_actions, frame_indices, per_step
 from stages.goals.environments import Environment, list_environments
 from stages.rl.observation import ObservationFn
 from stages.rl.wm_env import Start
@@ -50,9 +51,22 @@ class RLInputs:
                    goals=goals, wm=load_world_model(wm_dir, kind="action", device=ctx.device),
                    obs_fn=ObservationFn(tok, text), device=ctx.device)
 
+    @property
+    def frame_skip(self) -> int:
+        """Control steps per world-model (= policy) step."""
+        return int(self.wm.spec.frame_skip)
+
     def tokens(self, episode_id: str) -> np.ndarray:
-        """(T+1, h, w) int64 tokens of an episode."""
-        return np.asarray(self.store.episode(episode_id), dtype=np.int64)
+        """(T'+1, h, w) int64 tokens of an episode's world-model frames (every ``frame_skip``-th frame)."""
+        tokens = np.asarray(self.store.episode(episode_id), dtype=np.int64)
+        return tokens[frame_indices(len(tokens) - 1, self.frame_skip)]
+
+    def steps(self, episode_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World-model steps of an episode: tokens (T'+1, h, w), composed actions (T', 7), rule reward (T',)."""
+        ep = self.dataset.load(episode_id)
+        n, k = len(ep.action), self.frame_skip
+        return (self.tokens(episode_id), compose_actions(ep.action, k),
+                per_step(np.asarray(ep.reward, dtype=np.float32), n, k))
 
     def training_envs(self, tasks: list[str]) -> list[Environment]:
         train = set(self.split["train"])

@@ -13,6 +13,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from stable_baselines3 import PPO
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 
 
@@ -38,13 +39,16 @@ class LatentExtractor(BaseFeaturesExtractor):
 
 def make_ppo(env, cfg, seed: int, device: str) -> PPO:
     """PPO with the latent policy; hyper-parameters from the rl config."""
-    return PPO(
+    model = PPO(
         "MultiInputPolicy", env, n_steps=cfg.n_steps, batch_size=cfg.batch_size, n_epochs=cfg.n_epochs,
         learning_rate=cfg.learning_rate, gamma=cfg.gamma, gae_lambda=0.95, clip_range=cfg.clip_range,
         ent_coef=cfg.ent_coef, seed=seed, device=device, verbose=0,
         policy_kwargs=dict(features_extractor_class=LatentExtractor, net_arch=dict(pi=[256, 256], vf=[256, 256]),
                            log_std_init=cfg.log_std_init),
     )
+    # a logger without outputs: SB3's default one creates an empty /tmp/SB3-<time> directory per learn()
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    return model
 
 
 def sft(model: PPO, obs: dict[str, np.ndarray], actions: np.ndarray, *, epochs: int, lr: float,

@@ -1,7 +1,10 @@
 """The simulator as an RL environment with the SAME observation function as the world model.
 
 Used by the ``rule`` baseline (PPO directly in ManiSkill with the task's hand-written dense reward,
-the paper's "RL w. ManiSkill" row) and by evaluation. Each env samples one of its assigned
+the paper's "RL w. ManiSkill" row) and by evaluation. One env step repeats the policy's action for
+``action_repeat`` control steps (the world model's frame skip, ``stages.common.frame_skip``), so a
+policy step means the same in the simulator as in the world model; the reward is the task's
+(state-based) normalised dense reward after the last of them, ``max_steps`` counts policy steps. Each env samples one of its assigned
 (task, scene) environments at reset; simulator instances are created lazily and cached (building
 one costs seconds), at most ``cache_size`` per env.
 """
@@ -34,9 +37,13 @@ class SimTaskEnv(gym.Env):
     metadata = {"render_modes": []}
 
     def __init__(self, specs: list[SimSpec], obs_fn: ObservationFn, *, max_steps: int, image_size: int = 64,
-                 robot_mesh: str = "lowpoly", seed: int = 0, cache_size: int = 2, keep_frames: bool = False):
+                 robot_mesh: str = "lowpoly", seed: int = 0, cache_size: int = 2, keep_frames: bool = False,
+                 action_repeat: int = 1):
         if not specs:
             raise ValueError("SimTaskEnv needs at least one (task, scene)")
+        if action_repeat < 1:
+            raise ValueError(f"action_repeat must be >= 1, got {action_repeat}")
+        self.action_repeat = action_repeat
         self.specs, self.obs_fn, self.max_steps = list(specs), obs_fn, max_steps
         self.image_size, self.robot_mesh, self.cache_size = image_size, robot_mesh, cache_size
         self.observation_space = obs_fn.space
@@ -48,7 +55,7 @@ class SimTaskEnv(gym.Env):
         self.t = 0
         self.instruction = ""
         self.keep_frames = keep_frames
-        self.frames: list[tuple[np.ndarray, np.ndarray]] = []  # (third, wrist) of the episode when kept
+        self.frames: list[tuple[np.ndarray, np.ndarray]] = []  # (third, wrist) of every control step when kept
 
     def _env_for(self, spec: SimSpec) -> gym.Env:
         from stages.collect.sim import make_task_env
@@ -64,8 +71,6 @@ class SimTaskEnv(gym.Env):
         return env
 
     def _observe(self, raw: dict) -> dict[str, np.ndarray]:
-        if self.keep_frames:
-            self.frames.append((raw["third"], raw["wrist"]))
         obs = self.obs_fn.from_views(raw["third"][None], raw["wrist"][None], [self.instruction])
         return index_obs(obs, 0)
 
@@ -79,14 +84,20 @@ class SimTaskEnv(gym.Env):
         self.instruction = spec.instruction or self.env.instruction
         raw, info = self.env.reset(seed=int(self.rng.integers(2**31 - 1)))
         self.t = 0
-        self.frames = []
+        self.frames = [(raw["third"], raw["wrist"])] if self.keep_frames else []
         return self._observe(raw), {"success": bool(info["success"]), "env": spec.key}
 
     def step(self, action):
         a = np.asarray(action, dtype=np.float32).reshape(-1)
         if a.shape != (7,) or not np.isfinite(a).all():
             raise ValueError(f"expected a finite (7,) action, got {a!r}")
-        raw, reward, _, env_truncated, info = self.env.step(np.clip(a, -1.0, 1.0))
+        a = np.clip(a, -1.0, 1.0)
+        for _ in range(self.action_repeat):
+            raw, reward, _, env_truncated, info = self.env.step(a)
+            if self.keep_frames:
+                self.frames.append((raw["third"], raw["wrist"]))
+            if info["success"] or env_truncated:
+                break
         self.t += 1
         success = bool(info["success"])
         truncated = (self.t >= self.max_steps or bool(env_truncated)) and not success

@@ -15,11 +15,7 @@ from stages.rl.wm_env import WorldModelVecEnv
 
 
 def _episode_tuples(inp, ids: list[str]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    out = []
-    for i in ids:
-        ep = inp.dataset.load(i)
-        out.append((inp.tokens(i), np.asarray(ep.action, dtype=np.float32), np.asarray(ep.reward, dtype=np.float32)))
-    return out
+    return [inp.steps(i) for i in ids]
 
 
 def _frames(inp, fs: FrameSet) -> tuple[torch.Tensor, torch.Tensor]:
@@ -28,7 +24,7 @@ def _frames(inp, fs: FrameSet) -> tuple[torch.Tensor, torch.Tensor]:
 
 def train(ctx, cfg, inp) -> dict:
     t_stage = time.perf_counter()
-    metrics: dict = {"reward": cfg.reward, "tasks": list(cfg.tasks)}
+    metrics: dict = {"reward": cfg.reward, "tasks": list(cfg.tasks), "frame_skip": inp.frame_skip}
     envs = inp.training_envs(cfg.tasks)
     metrics["train_environments"] = len(envs)
     ctx.log.info("rl: reward %s, %d training environments of tasks %s", cfg.reward, len(envs), cfg.tasks)
@@ -112,8 +108,7 @@ def _demos(inp, ids: list[str]) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Observation / action pairs of demonstration episodes (frames 0..T-1 and their actions)."""
     obs_parts, acts = [], []
     for i in ids:
-        tokens = inp.tokens(i)
-        actions = np.asarray(inp.dataset.load(i).action, dtype=np.float32)
+        tokens, actions, _ = inp.steps(i)
         obs_parts.append(inp.obs_fn.from_tokens(tokens[:-1], [inp.meta[i].instruction] * len(actions)))
         acts.append(actions)
     obs = {k: np.concatenate([o[k] for o in obs_parts]) for k in obs_parts[0]}
@@ -167,5 +162,6 @@ def _sim_vec_env(ctx, cfg, inp, envs):
     specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction, inp.goal_index[e.env_id]) for e in envs]
     n = min(cfg.sim_envs, len(specs))
     groups = [specs[i::n] for i in range(n)]
-    return DummyVecEnv([lambda g=g, i=i: SimTaskEnv(g, inp.obs_fn, max_steps=cfg.max_episode_steps, seed=cfg.seed + i)
+    return DummyVecEnv([lambda g=g, i=i: SimTaskEnv(g, inp.obs_fn, max_steps=cfg.max_episode_steps, seed=cfg.seed + i,
+                                                      action_repeat=inp.frame_skip)
                         for i, g in enumerate(groups)])

@@ -38,6 +38,7 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
+from stages.common.frame_skip import frame_indices
 from stages.train_wm.data import ClipSampler, load_episodes, split_episodes
 from stages.train_wm.evaluate import (HORIZONS, decoded, done_head_eval, extreme_action_eval, horizon_eval,
                                       real_images, rollout_starts)
@@ -58,6 +59,8 @@ class Config(BaseModel):
     heads: int = Field(4, ge=1, description="attention heads")
     head_depth: int = Field(1, ge=1, description="spatial blocks in the MaskGIT decoding head")
     mlp_ratio: int = Field(4, ge=1, description="MLP hidden width as a multiple of dim")
+    frame_skip: int = Field(4, ge=1, description="control steps per world-model step: episodes are subsampled and "
+                            "their actions composed (stages.common.frame_skip)")
     window: int = Field(8, ge=2, description="frames of temporal context (training clip length, KV cache size)")
     control_tokens: int = Field(4, ge=1, description="memory tokens the control (action / text) is projected into")
     steps: int = Field(800, ge=1, description="optimisation steps per world model")
@@ -79,7 +82,7 @@ class Config(BaseModel):
 def _spec(cfg: Config, kind: str, vocab: int, grid: tuple[int, int]) -> WMSpec:
     return WMSpec(kind=kind, vocab_size=vocab, grid=grid, dim=cfg.dim, depth=cfg.depth, heads=cfg.heads,
                   head_depth=cfg.head_depth, mlp_ratio=cfg.mlp_ratio, window=cfg.window,
-                  control_tokens=cfg.control_tokens)
+                  control_tokens=cfg.control_tokens, frame_skip=cfg.frame_skip)
 
 
 def run(ctx) -> None:
@@ -96,7 +99,7 @@ def run(ctx) -> None:
     store = TokenStore(tok_dir)
     n_eps = len(Dataset(collect_dir).episodes)
     with ctx.progress(n_eps, "train_wm: load episodes", unit="ep") as bar:
-        episodes = load_episodes(collect_dir, tok_dir, bar)
+        episodes = load_episodes(collect_dir, tok_dir, bar, frame_skip=cfg.frame_skip)
     split_file = tok_dir / "split.json"
     heldout_ids = set(json.loads(split_file.read_text()).get("heldout", [])) if split_file.is_file() else None
     train_eps, held_eps, ood_eps = split_episodes(episodes, heldout_ids, cfg.holdout_fraction, cfg.seed)
@@ -162,7 +165,8 @@ def _evaluate(ctx, cfg: Config, models: dict, held_eps: list, ood_eps: list, tex
         with ctx.progress(len(used), f"train_wm: {split} frames", unit="ep") as bar:
             for i in used:
                 ep = ds.load(eps[i].episode_id)
-                images[eps[i].episode_id] = real_images(tok, ep.third, ep.wrist)
+                keep = frame_indices(len(ep.action), cfg.frame_skip)  # the world model's frames
+                images[eps[i].episode_id] = real_images(tok, ep.third[keep], ep.wrist[keep])
                 bar.update(1)
         rows = {}
         for kind, wm in models.items():

@@ -1,8 +1,11 @@
 """Episodes as token sequences for world-model training: load once, sample fixed-length clips.
 
-Done labels: ``done[t] = success[t]``, the simulator's success flag at observed frame t (1 from the
-first frame where the task is achieved on, for as long as it stays achieved). The done head is
-trained on frames 1..T of each clip (the frames the model predicts).
+Episodes are subsampled to one frame every ``frame_skip`` control steps, actions composed
+(``stages.common.frame_skip``); everything below counts world-model steps.
+
+Done labels: ``done[t] = success[t]``, the simulator's success flag at observed (kept) frame t (1
+from the first frame where the task is achieved on, for as long as it stays achieved). The done
+head is trained on frames 1..T of each clip (the frames the model predicts).
 """
 from __future__ import annotations
 
@@ -28,9 +31,10 @@ class Episode:
         return len(self.actions)
 
 
-def load_episodes(collect_dir: Path, tokenize_dir: Path, progress=None) -> list[Episode]:
-    """Every collected episode with its precomputed tokens, actions and done labels."""
+def load_episodes(collect_dir: Path, tokenize_dir: Path, progress=None, frame_skip: int = 1) -> list[Episode]:
+    """Every collected episode with its precomputed tokens, composed actions and done labels."""
     from stages.collect.dataset import Dataset
+    from stages.common.frame_skip import compose_actions, frame_indices
     from stages.tokenize.store import TokenStore
 
     ds, store = Dataset(collect_dir), TokenStore(tokenize_dir)
@@ -45,8 +49,9 @@ def load_episodes(collect_dir: Path, tokenize_dir: Path, progress=None) -> list[
         if len(tokens) != len(actions) + 1:
             raise ValueError(f"episode {meta.episode_id!r}: {len(tokens)} token frames for {len(actions)} actions "
                              f"(expected T+1 frames for T actions)")
-        out.append(Episode(meta.episode_id, meta.instruction, meta.split, tokens, actions,
-                           np.asarray(ep.success, dtype=np.float32)))
+        keep = frame_indices(len(actions), frame_skip)
+        out.append(Episode(meta.episode_id, meta.instruction, meta.split, tokens[keep],
+                           compose_actions(actions, frame_skip), np.asarray(ep.success, dtype=np.float32)[keep]))
         if progress is not None:
             progress.update(1)
     return out

@@ -43,12 +43,17 @@ class WMSpec:
     mlp_ratio: int = 4
     window: int = 16  # frames of temporal context
     control_tokens: int = 4
+    # control steps of the simulator per world-model step (stages.common.frame_skip); not architecture,
+    # but what one step means, so every consumer of the checkpoint reads it from here
+    frame_skip: int = 1
 
     def __post_init__(self):
         if self.kind not in ("action", "text"):
             raise ValueError(f"world model kind must be 'action' or 'text', got {self.kind!r}")
         if self.dim % self.heads or (self.dim // self.heads) % 2:
             raise ValueError(f"dim={self.dim} must split into {self.heads} heads of even size (rotary embedding)")
+        if self.frame_skip < 1:
+            raise ValueError(f"frame_skip must be >= 1, got {self.frame_skip}")
 
     @property
     def tokens(self) -> int:

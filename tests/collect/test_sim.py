@@ -120,3 +120,16 @@ def test_asset_download_prompt_is_refused():
 
     with pytest.raises(AssetDownloadRefused, match="never downloads"):
         download_asset.prompt_yes_no("download YCB?")
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_composed_actions_repeated_reproduce_success(sims, task):
+    """Frame skip is sound: the world model's composed actions, each repeated k times, still succeed."""
+    from stages.common.frame_skip import compose_actions
+
+    env, runner, state = sims[task]
+    rec = record_episode(env, runner, state, _scene(task), "optimal", 11)
+    k = 4
+    repeated = np.repeat(compose_actions(rec.action, k), k, axis=0)  # (k * ceil(T/k), 7)
+    assert len(repeated) >= len(rec.action)
+    assert replay(env, 11, repeated).any(), f"{task}: composed actions repeated {k}x did not reach success"

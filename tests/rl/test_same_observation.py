@@ -36,3 +36,26 @@ def test_wm_env_and_sim_env_observe_a_real_frame_identically():
         assert obs_sim2["codes"].shape == obs_wm["codes"][0].shape
     finally:
         sim.close()
+
+
+def test_a_sim_step_repeats_the_action_for_the_world_models_frame_skip():
+    from stages.collect.sim import default_catalog
+    from stages.rl.sim_env import SimSpec, SimTaskEnv
+
+    tok = tiny_tokenizer()
+    scene = next(s for s in default_catalog().values() if s.split == "ind")
+    sim = SimTaskEnv([SimSpec("push", scene.to_dict())], obs_fn(tok), max_steps=2, keep_frames=True, action_repeat=3)
+    try:
+        sim.reset(seed=0)
+        up = np.zeros(7, np.float32)
+        up[2] = 1.0  # +z, gripper target 0
+        _, _, term, trunc, _ = sim.step(up)
+        assert len(sim.frames) == 1 + 3  # the reset frame + one per control step
+        assert not term and not trunc
+        _, _, term, trunc, _ = sim.step(up)
+        assert trunc and len(sim.frames) == 1 + 6  # max_steps counts policy steps
+        assert not np.array_equal(sim.frames[0][1], sim.frames[-1][1])  # the wrist camera moved
+    finally:
+        sim.close()
+    with pytest.raises(ValueError, match="action_repeat"):
+        SimTaskEnv([SimSpec("push", scene.to_dict())], obs_fn(tok), max_steps=2, action_repeat=0)

@@ -49,7 +49,7 @@ def _render(x: float, y: float, color) -> np.ndarray:
 class FakeDataset:
     """IND and OOD episodes of length T whose motion follows the actions."""
 
-    def __init__(self, directory=None, n_ind: int = 8, n_ood: int = 2, T: int = 18, seed: int = 0):
+    def __init__(self, directory=None, n_ind: int = 8, n_ood: int = 2, T: int = 36, seed: int = 0):
         rng = np.random.default_rng(seed)
         self._eps, self.episodes = {}, []
         for i in range(n_ind + n_ood):

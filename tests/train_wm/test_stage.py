@@ -10,7 +10,7 @@ from stages.train_wm.rollout import load_world_model
 from tests.train_wm.fake_upstream import FakeDataset, install_fake_collect, make_tokenize_artifact
 
 TINY = dict(dim=32, depth=1, heads=2, head_depth=1, window=4, control_tokens=2, steps=30, batch_size=4,
-            eval_episodes=2, eval_starts=1)
+            eval_episodes=2, eval_starts=1, frame_skip=2)
 
 
 def _finite(metrics: dict) -> list[str]:
@@ -46,3 +46,4 @@ def test_stage_writes_checkpoints_metrics_and_figure(tmp_path, monkeypatch):
     roll.reset(torch.zeros(2, 8, 8, dtype=torch.long), wm.text_embedding(["push the red cube", "a new instruction"]))
     step = roll.step()
     assert step.tokens.shape == (2, 8, 8) and step.done_prob.shape == (2,)
+    assert wm.spec.frame_skip == 2 and load_world_model(out, "action").spec.frame_skip == 2  # consumers read it here

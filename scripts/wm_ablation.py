@@ -1,0 +1,68 @@
+"""Action-WM ablation on existing collect + tokenize artifacts: train the action WM only with some
+train_wm config overrides, then open-loop PSNR / LPIPS / token accuracy at horizons 1, 5, 15 on
+held-out IND and OOD episodes, next to copy-last, shuffled actions and the tokenizer ceiling.
+
+    PYTHONPATH=. .venv/bin/python scripts/wm_ablation.py <collect_dir> <tokenize_dir> '{"frame_skip": 4}'
+
+Uses the stage's own functions (load_episodes, ClipSampler, train_world_model, horizon_eval); the
+held-out IND list is the tokenizer's, OOD is capped at 6 episodes, 6 starts per episode.
+"""
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import stages.train_wm as W
+from stages.collect.dataset import Dataset
+from stages.common.frame_skip import frame_indices
+from stages.tokenize.store import TokenStore
+from stages.tokenize.tokenizer import load_tokenizer
+from stages.train_wm.data import ClipSampler, load_episodes, split_episodes
+from stages.train_wm.evaluate import horizon_eval, real_images, rollout_starts
+from stages.train_wm.model import WorldModelNet
+from stages.train_wm.rollout import WorldModel
+from stages.train_wm.train import train_world_model
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    collect, tok_dir, overrides = Path(sys.argv[1]), Path(sys.argv[2]), json.loads(sys.argv[3])
+    cfg = W.Config(**overrides)
+    torch.manual_seed(cfg.seed)
+    eps = load_episodes(collect, tok_dir, frame_skip=cfg.frame_skip)
+    held = set(json.loads((tok_dir / "split.json").read_text())["heldout"])
+    train, heldout, ood = split_episodes(eps, held, cfg.holdout_fraction, cfg.seed)
+    store = TokenStore(tok_dir)
+    net = WorldModelNet(W._spec(cfg, "action", 2**store.bits, tuple(store.grid)))
+    net.set_action_stats(torch.from_numpy(np.concatenate([e.actions for e in train])))
+    sampler = ClipSampler(train, cfg.window, {e.instruction: np.zeros(384, np.float32) for e in eps}, cfg.seed)
+    t0 = time.time()
+    r = train_world_model(net, sampler, steps=cfg.steps, batch_size=cfg.batch_size, lr=cfg.lr,
+                          weight_decay=cfg.weight_decay, done_weight=cfg.done_weight, done_kind=cfg.done_loss,
+                          seed=cfg.seed, device="cpu", changed_weight=cfg.changed_weight)
+    print(overrides, f"{len(train)} train episodes, train s {time.time() - t0:.0f}",
+          {k: round(v, 3) for k, v in r["final"].items()}, flush=True)
+    wm = WorldModel(net, cfg.decode_steps, 0.0)
+    tok, ds = load_tokenizer(tok_dir, "cpu"), Dataset(collect)
+    for name, split in (("ind", heldout), ("ood", ood[:6])):
+        starts = rollout_starts(split, 15, 6, np.random.default_rng(0))
+        images = {}
+        for i in sorted({i for i, _ in starts}):
+            ep = ds.load(split[i].episode_id)
+            keep = frame_indices(len(ep.action), cfg.frame_skip)
+            images[split[i].episode_id] = real_images(tok, ep.third[keep], ep.wrist[keep])
+        m, _ = horizon_eval(wm, tok, split, images, starts, {}, "cpu", True)
+        for h in (1, 5, 15):
+            g = lambda row, key: m[f"h{h}/{row}/{key}"]  # noqa: E731
+            print(f"  {name} h{h}: PSNR wm {g('wm', 'psnr'):.2f} copy {g('copy_last', 'psnr'):.2f} "
+                  f"shuffled {g('shuffled_actions', 'psnr'):.2f} tokenizer {g('tokenizer', 'psnr'):.2f} | "
+                  f"LPIPS wm {g('wm', 'lpips'):.3f} copy {g('copy_last', 'lpips'):.3f} | "
+                  f"token acc wm {g('wm', 'token_acc'):.3f} copy {g('copy_last', 'token_acc'):.3f} | "
+                  f"true-vs-shuffled L1 {m[f'h{h}/true_vs_shuffled_pixel_l1']:.4f} | starts {m['starts']}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
