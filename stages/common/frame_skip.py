@@ -1,7 +1,7 @@
 """Frame skip: one world-model step = ``k`` control steps of the simulator.
 
-Between two 20 Hz control steps ~98% of the tokens of a 64x64 frame do not change (measured on the
-small collection, docs/world_model.md), so a next-frame model minimises its loss by copying and
+Between two 20 Hz control steps ~98% of the tokens of a 64x64 frame do not change (measured on a
+63-episode subset of real collected data, docs/world_model.md), so a next-frame model minimises its loss by copying and
 learns to ignore the action. Every consumer of world-model steps therefore sees the recorded
 episodes subsampled to one frame every ``k`` control steps, with the ``k`` actions between two kept
 frames composed into one:
