@@ -25,6 +25,11 @@ def _config_args(p: argparse.ArgumentParser) -> None:
                    help="override one config value (YAML value); repeatable")
 
 
+def _axis_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--axis", dest="axes", action="append", default=[], metavar="STAGE.KEY=[V,...]",
+                   help="replace the values of one of the sweep's axes, e.g. rl.seed=[0,1] (YAML list); repeatable")
+
+
 def _select_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--until", default=None, metavar="S", help="run S and its ancestors only")
     p.add_argument("--only", action="append", default=[], metavar="S", help="run exactly S (repeatable); inputs must be cached")
@@ -47,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("status", help="each stage: cached or to run, and why")
     _common(p), _config_args(p), _select_args(p)
     p.add_argument("--sweep", default=None, metavar="NAME", help="status of every point of a sweep")
+    _axis_arg(p)
     p = sub.add_parser("dag", help="print the stages in order with what they need")
     _common(p)
     p.add_argument("--dot", action="store_true", help="graphviz dot output")
@@ -54,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p), _config_args(p), _exec_args(p)
     p.add_argument("name")
     p.add_argument("--until", default=None, metavar="S", help="last stage of every point (default: the sweep's `until`)")
+    _axis_arg(p)
     p = sub.add_parser("show", help="artifact path and manifest of a stage's current key")
     _common(p), _config_args(p)
     p.add_argument("stage")
@@ -116,9 +123,9 @@ def cmd_run(project: Project, args, argv) -> int:
 def cmd_status(project: Project, args) -> int:
     profile, sets = _prepare(project, args)
     if args.sweep:
-        from pipeline.sweep import expand
+        from pipeline.sweep import expand, parse_axes
 
-        points, _ = expand(project, args.sweep, profile, sets, args.until)
+        points, _ = expand(project, args.sweep, profile, sets, args.until, parse_axes(args.axes))
         for pt in points:
             _status_table(pt.nodes, pt.label)
         return 0
@@ -128,10 +135,10 @@ def cmd_status(project: Project, args) -> int:
 
 
 def cmd_sweep(project: Project, args, argv) -> int:
-    from pipeline.sweep import expand, results_table, run_report
+    from pipeline.sweep import expand, parse_axes, results_table, run_report
 
     profile, sets = _prepare(project, args)
-    points, last = expand(project, args.name, profile, sets, args.until)
+    points, last = expand(project, args.name, profile, sets, args.until, parse_axes(args.axes))
     if args.dry_run:
         for pt in points:
             _status_table(pt.nodes, pt.label)

@@ -29,15 +29,39 @@ class Point:
         return self.nodes[-1]
 
 
-def expand(project: Project, name: str, profile: str | None, sets: dict, until: str | None) -> tuple[list[Point], str]:
-    """Every point of sweep ``name`` as planned nodes, and the sweep's last stage."""
+def parse_axes(items: list[str]) -> dict[str, list]:
+    """``--axis PATH=[v1, v2]`` strings -> {path: values}; values are a non-empty YAML list."""
+    import yaml
+
+    out = {}
+    for item in items:
+        path, eq, raw = item.partition("=")
+        try:
+            vals = yaml.safe_load(raw) if eq else None
+        except yaml.YAMLError as e:
+            raise PipelineError(f"--axis {item!r}: value is not valid YAML ({e})") from None
+        if not path or not isinstance(vals, list) or not vals:
+            raise PipelineError(f"--axis {item!r}: expected stage.key=[value, ...] with at least one value")
+        out[path] = vals
+    return out
+
+
+def expand(project: Project, name: str, profile: str | None, sets: dict, until: str | None,
+           axis_values: dict[str, list] | None = None) -> tuple[list[Point], str]:
+    """Every point of sweep ``name`` as planned nodes, and the sweep's last stage.
+
+    ``axis_values`` replaces the values of some of the sweep's axes (``--axis rl.seed=[0,1]``).
+    """
     if name not in project.spec.sweeps:
         raise PipelineError(f"sweep {name!r}: unknown sweep; known: {', '.join(project.spec.sweeps) or '(none)'}")
     sw = project.spec.sweeps[name]
     last = until or sw.until or project.order[-1]
     if last not in project.needs:
         raise PipelineError(f"--until: unknown stage {last!r}; known stages: {', '.join(project.order)}")
-    axes = list(sw.axes.items())
+    unknown = sorted(set(axis_values or {}) - set(sw.axes))
+    if unknown:
+        raise PipelineError(f"--axis {unknown[0]!r}: not an axis of sweep {name!r}; its axes: {', '.join(sw.axes)}")
+    axes = [(path, (axis_values or {}).get(path, vals)) for path, vals in sw.axes.items()]
     axis_overrides = parse_set([f"{path}=x" for path, _ in axes])  # shape only, validated below
     project.check_overrides(axis_overrides, f"sweeps.{name}.axes")
     points = []

@@ -40,7 +40,7 @@ def main() -> None:
     net.set_action_stats(torch.from_numpy(np.concatenate([e.actions for e in train])))
     sampler = ClipSampler(train, cfg.window, {e.instruction: np.zeros(384, np.float32) for e in eps}, cfg.seed)
     t0 = time.time()
-    r = train_world_model(net, sampler, steps=cfg.steps, batch_size=cfg.batch_size, lr=cfg.lr,
+    r = train_world_model(net, sampler, steps=cfg.action_steps, batch_size=cfg.batch_size, lr=cfg.lr,
                           weight_decay=cfg.weight_decay, done_weight=cfg.done_weight, done_kind=cfg.done_loss,
                           seed=cfg.seed, device="cpu", changed_weight=cfg.changed_weight)
     print(overrides, f"{len(train)} train episodes, train s {time.time() - t0:.0f}",

@@ -69,7 +69,7 @@ SEED_BASE = 1_000_000  # collection seeds are small; evaluation states are new o
 
 def run(ctx) -> None:
     from stages.evaluate.jobs import build_jobs, snapshot_jobs
-    from stages.evaluate.episodes import run_job
+    from stages.evaluate.episodes import close_sims, run_job
     from stages.evaluate.writeup import write_everything
 
     cfg: Config = ctx.config
@@ -78,7 +78,10 @@ def run(ctx) -> None:
     jobs = build_jobs(ctx, cfg, rl_metrics)
     snaps = snapshot_jobs(ctx, cfg, rl_metrics)
     ctx.log.info("evaluate: %d jobs (%d episodes) + %d snapshot jobs", len(jobs), sum(len(j.seeds) for j in jobs), len(snaps))
-    results = [r for rs in ctx.map(run_job, jobs + snaps, desc="evaluate episodes") for r in rs]
+    try:
+        results = [r for rs in ctx.map(run_job, jobs + snaps, desc="evaluate episodes") for r in rs]
+    finally:
+        close_sims()  # the in-process (jobs=1) path keeps its simulator between jobs
     with open(ctx.out / "results.jsonl", "w") as f:
         for r in results:
             f.write(json.dumps({k: v for k, v in r.items() if k != "frames"}) + "\n")

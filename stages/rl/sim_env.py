@@ -4,9 +4,11 @@ Used by the ``rule`` baseline (PPO directly in ManiSkill with the task's hand-wr
 the paper's "RL w. ManiSkill" row) and by evaluation. One env step repeats the policy's action for
 ``action_repeat`` control steps (the world model's frame skip, ``stages.common.frame_skip``), so a
 policy step means the same in the simulator as in the world model; the reward is the task's
-(state-based) normalised dense reward after the last of them, ``max_steps`` counts policy steps. Each env samples one of its assigned
-(task, scene) environments at reset; simulator instances are created lazily and cached (building
-one costs seconds), at most ``cache_size`` per env.
+(state-based) normalised dense reward after the last of them, ``max_steps`` counts policy steps.
+Only the last control step of a policy step renders the cameras (unless ``keep_frames``): the others
+are never observed (a policy step of 4 control steps: 64 ms rendering each, 32 ms rendering the
+last). Each env samples one of its assigned (task, scene) environments at reset; simulator
+instances are created lazily and cached (building one costs seconds), at most ``cache_size`` per env.
 """
 from __future__ import annotations
 
@@ -92,7 +94,12 @@ class SimTaskEnv(gym.Env):
         if a.shape != (7,) or not np.isfinite(a).all():
             raise ValueError(f"expected a finite (7,) action, got {a!r}")
         a = np.clip(a, -1.0, 1.0)
-        for _ in range(self.action_repeat):
+        for r in range(self.action_repeat):
+            if r < self.action_repeat - 1 and not self.keep_frames:
+                if not self._unobserved_control_step(a):
+                    continue  # an intermediate repeat: nobody sees its frames, so none are rendered
+                raw, reward, env_truncated, info = self._observe_current(a)  # success mid-repeat: observe it, end
+                break
             raw, reward, _, env_truncated, info = self.env.step(a)
             if self.keep_frames:
                 self.frames.append((raw["third"], raw["wrist"]))
@@ -102,6 +109,30 @@ class SimTaskEnv(gym.Env):
         success = bool(info["success"])
         truncated = (self.t >= self.max_steps or bool(env_truncated)) and not success
         return self._observe(raw), float(reward), success, truncated, {"success": success, "env": self.spec_now.key}
+
+    def _unobserved_control_step(self, a: np.ndarray) -> bool:
+        """One control step without rendering; returns the task's success flag.
+
+        ManiSkill's ``step`` renders both cameras for its observation (8 of its 16 ms on this machine).
+        The first ``action_repeat - 1`` control steps of a policy
+        step are never observed, so they run what ``step`` runs minus ``get_obs`` / ``get_reward``: the
+        controller and physics (``_step_action``), the step counter, the task's evaluation. ManiSkill's
+        own API (pinned version); ``tests/rl/test_same_observation.py`` checks the result equals full steps.
+        """
+        base = self.env.unwrapped
+        base._step_action(a[None])
+        base._elapsed_steps += 1
+        return bool(base.get_info()["success"].reshape(-1)[0])
+
+    def _observe_current(self, a: np.ndarray):
+        """(raw obs, reward, truncated, info) of the current state, as the wrapped env's ``step`` returns them."""
+        import torch
+
+        base = self.env.unwrapped
+        info = base.get_info()
+        obs = base.get_obs(info, unflattened=True)
+        reward = base.get_reward(obs=obs, action=torch.as_tensor(a[None]), info=info)
+        return self.env._obs(obs), float(reward.reshape(-1)[0]), False, self.env._info(info)
 
     def close(self) -> None:
         for env in self._envs.values():

@@ -63,7 +63,11 @@ class Config(BaseModel):
                             "their actions composed (stages.common.frame_skip)")
     window: int = Field(8, ge=2, description="frames of temporal context (training clip length, KV cache size)")
     control_tokens: int = Field(4, ge=1, description="memory tokens the control (action / text) is projected into")
-    steps: int = Field(800, ge=1, description="optimisation steps per world model")
+    action_steps: int = Field(3000, ge=1, description="optimisation steps of the action world model (at 800 it tied "
+                              "copy-last and ignored its actions on the small data; 3000 beat it, docs/world_model.md)")
+    text_steps: int = Field(800, ge=1, description="optimisation steps of the text world model (goal imagination, done head)")
+    train_threads: int = Field(0, ge=0, description="torch CPU threads while training (0 = the run's --jobs); "
+                               "rollouts and evaluation use 1")
     batch_size: int = Field(8, ge=1, description="clips per optimisation step")
     lr: float = Field(1e-3, gt=0, description="AdamW peak learning rate")
     weight_decay: float = Field(0.05, ge=0, description="AdamW weight decay of matrices")
@@ -92,8 +96,7 @@ def run(ctx) -> None:
     from stages.tokenize.tokenizer import load_tokenizer
 
     cfg: Config = ctx.config
-    if ctx.device == "cpu":
-        torch.set_num_threads(1)  # measured 2-10x faster than 2 threads for models this size
+    cpu = ctx.device == "cpu"
     torch.manual_seed(cfg.seed)
     collect_dir, tok_dir = ctx.input("collect"), ctx.input("tokenize")
     store = TokenStore(tok_dir)
@@ -117,12 +120,17 @@ def run(ctx) -> None:
     metrics: dict = {"episodes/train": len(train_eps), "episodes/heldout_ind": len(held_eps),
                      "episodes/ood": len(ood_eps), "vocab_size": vocab, "grid": list(grid)}
     models = {}
+    # training batches (8 clips x 8 frames x 64 tokens) use both cores: 0.53 s/step at 2 threads vs 0.85 at 1;
+    # rollouts (a frame at a time) are faster at 1 thread (docs/world_model.md)
+    if cpu:
+        torch.set_num_threads(cfg.train_threads or max(1, ctx.jobs))
     for i, kind in enumerate(("action", "text")):
+        steps = cfg.action_steps if kind == "action" else cfg.text_steps
         net = WorldModelNet(_spec(cfg, kind, vocab, grid)).to(ctx.device)
         net.set_action_stats(train_actions.to(ctx.device))
         sampler = ClipSampler(train_eps, cfg.window, text_emb, cfg.seed + 17 * i)
-        with ctx.progress(cfg.steps, f"train_wm: {kind} WM", unit="step") as bar:
-            result = train_world_model(net, sampler, steps=cfg.steps, batch_size=cfg.batch_size, lr=cfg.lr,
+        with ctx.progress(steps, f"train_wm: {kind} WM", unit="step") as bar:
+            result = train_world_model(net, sampler, steps=steps, batch_size=cfg.batch_size, lr=cfg.lr,
                                        weight_decay=cfg.weight_decay, done_weight=cfg.done_weight,
                                        done_kind=cfg.done_loss, seed=cfg.seed + i, device=ctx.device,
                                        changed_weight=cfg.changed_weight,
@@ -132,11 +140,14 @@ def run(ctx) -> None:
         models[kind] = WorldModel(net, cfg.decode_steps, cfg.temperature, {k: v.tolist() for k, v in text_emb.items()})
         metrics[f"{kind}_wm/params"] = sum(p.numel() for p in net.parameters())
         metrics[f"{kind}_wm/train_seconds"] = result["seconds"]
+        metrics[f"{kind}_wm/train_steps"] = steps
         metrics[f"{kind}_wm/final_ce"] = result["final"]["ce"]
         metrics[f"{kind}_wm/final_token_acc"] = result["final"]["acc"]
         metrics[f"{kind}_wm/final_done_loss"] = result["final"]["done"]
         metrics[f"{kind}_wm/history"] = result["history"]
 
+    if cpu:
+        torch.set_num_threads(1)
     t0 = time.perf_counter()
     metrics.update(_evaluate(ctx, cfg, models, held_eps, ood_eps, text_emb, load_tokenizer(tok_dir, ctx.device),
                              Dataset(collect_dir)))

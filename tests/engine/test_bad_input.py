@@ -69,6 +69,8 @@ def test_malformed_yaml_names_the_file(ws):
 def test_unknown_profile_and_sweep(ws):
     assert "unknown profile" in _fails(ws, "run", "--profile", "huge")
     assert "unknown sweep" in _fails(ws, "sweep", "rewardz")
+    assert "not an axis of sweep 'rewards'" in _fails(ws, "sweep", "rewards", "--axis", "rl.sead=[0]")
+    assert "at least one value" in _fails(ws, "sweep", "rewards", "--axis", "rl.seed=3")
 
 
 def test_missing_stage_module_is_a_clear_error(ws):

@@ -131,6 +131,15 @@ def test_sweep_runs_shared_ancestors_once_and_tabulates_twelve_points(ws):
     assert ws.executions() == [] and again.returncode == 0
 
 
+def test_axis_option_narrows_a_sweep(ws):
+    status = ws.cli("status", "--sweep", "rewards", "--axis", "rl.seed=[0, 1]", "--axis", "rl.reward=[wm, rule]")
+    assert status.stdout.count("sweep:rewards:") == 4
+    ws.cli("sweep", "rewards", "--axis", "rl.seed=[1]", "--until", "rl")
+    assert Counter(ws.executions())["rl"] == 4
+    table = json.loads(next((ws.store / "sweeps" / "rewards").glob("*/results.json")).read_text())
+    assert {(r["rl.reward"], r["rl.seed"]) for r in table["rows"]} == {(r, 1) for r in ["wm", "rule", "embedding", "proxy"]}
+
+
 def test_sweep_with_jobs_uses_a_process_pool(ws):
     ws.cli("sweep", "rewards", "--until", "rl", "--jobs", "2")
     pids = {}

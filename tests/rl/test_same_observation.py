@@ -59,3 +59,38 @@ def test_a_sim_step_repeats_the_action_for_the_world_models_frame_skip():
         sim.close()
     with pytest.raises(ValueError, match="action_repeat"):
         SimTaskEnv([SimSpec("push", scene.to_dict())], obs_fn(tok), max_steps=2, action_repeat=0)
+
+
+def test_unrendered_repeats_reach_the_same_state_as_rendered_ones():
+    """The first k-1 control steps of a policy step skip the cameras; the result equals k full steps."""
+    from stages.collect.sim import default_catalog
+    from stages.rl.sim_env import SimSpec, SimTaskEnv
+
+    tok = tiny_tokenizer()
+    scene = next(s for s in default_catalog().values() if s.split == "ind")
+    spec = SimSpec("push", scene.to_dict())
+    full = SimTaskEnv([spec], obs_fn(tok), max_steps=5, keep_frames=True, action_repeat=4)  # renders every step
+    fast = SimTaskEnv([spec], obs_fn(tok), max_steps=5, action_repeat=4)
+    try:
+        full.reset(seed=3)
+        obs, _ = fast.reset(seed=3)
+        reset_frame = full.frames[0]
+        raw, reward, truncated, info = fast._observe_current(np.zeros(7, np.float32))  # no step: same picture
+        np.testing.assert_array_equal(raw["third"], reset_frame[0])
+        np.testing.assert_array_equal(raw["wrist"], reset_frame[1])
+        assert np.isfinite(reward) and not truncated and info["success"] is False
+        rng = np.random.default_rng(0)
+        for _ in range(3):
+            a = rng.uniform(-1, 1, 7).astype(np.float32)
+            o_full, r_full, t_full, *_ = full.step(a)
+            o_fast, r_fast, t_fast, *_ = fast.step(a)
+            np.testing.assert_array_equal(o_full["codes"], o_fast["codes"])
+            assert r_full == pytest.approx(r_fast, abs=1e-6) and t_full == t_fast
+            q_full = full.env.unwrapped.agent.robot.get_qpos().numpy()
+            q_fast = fast.env.unwrapped.agent.robot.get_qpos().numpy()
+            np.testing.assert_allclose(q_full, q_fast, atol=1e-6)
+        assert int(fast.env.unwrapped.elapsed_steps.reshape(-1)[0]) == 12  # every control step counted
+        assert len(full.frames) == 1 + 12
+    finally:
+        full.close()
+        fast.close()

@@ -9,7 +9,7 @@ from stages.train_wm import Config, run
 from stages.train_wm.rollout import load_world_model
 from tests.train_wm.fake_upstream import FakeDataset, install_fake_collect, make_tokenize_artifact
 
-TINY = dict(dim=32, depth=1, heads=2, head_depth=1, window=4, control_tokens=2, steps=30, batch_size=4,
+TINY = dict(dim=32, depth=1, heads=2, head_depth=1, window=4, control_tokens=2, action_steps=30, text_steps=20, batch_size=4,
             eval_episodes=2, eval_starts=1, frame_skip=2)
 
 
@@ -40,6 +40,7 @@ def test_stage_writes_checkpoints_metrics_and_figure(tmp_path, monkeypatch):
         assert m[f"action_wm/{split}/extreme_actions/finite"] == 1.0
         assert m[f"action_wm/{split}/extreme_actions/clip_fraction"] > 0.9
         assert 0.0 <= m[f"action_wm/{split}/done/brier"] <= 1.0
+    assert (m["action_wm/train_steps"], m["text_wm/train_steps"]) == (30, 20)  # separate budgets
     assert m["action_wm/history"][-1]["ce"] < m["action_wm/history"][0]["ce"]
     wm = load_world_model(out, "text")
     roll = wm.rollout(2)
