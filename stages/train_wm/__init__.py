@@ -77,8 +77,8 @@ class Config(BaseModel):
     decode_steps: int = Field(2, ge=1, description="MaskGIT passes per predicted frame in rollouts")
     temperature: float = Field(0.0, ge=0, description="token sampling temperature in rollouts (0 = greedy)")
     holdout_fraction: float = Field(0.1, ge=0, lt=1, description="IND episodes held out if tokenize has no split.json")
-    eval_episodes: int = Field(16, ge=1, description="episodes per split (held-out IND, OOD) used for evaluation")
-    eval_starts: int = Field(2, ge=1, description="open-loop start frames per evaluation episode")
+    eval_episodes: int = Field(32, ge=1, description="episodes per split (held-out IND, OOD) used for evaluation")
+    eval_starts: int = Field(4, ge=1, description="open-loop start frames per evaluation episode")
     done_threshold: float = Field(0.5, gt=0, lt=1, description="theta for done precision / recall")
     extreme_scale: float = Field(10.0, gt=1, description="extreme-action test: multiple of the data's action bound")
 

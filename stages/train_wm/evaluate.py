@@ -164,6 +164,12 @@ def horizon_eval(wm: WorldModel, tok, episodes: list[Episode], images: dict, sta
             for m, v in frame_metrics(tok, toks, real, device).items():
                 metrics[f"h{hz}/{name}/{m}"] = v
         metrics[f"h{hz}/wm/token_acc"] = float((pred[:, hz - 1] == real_tok.view(k, -1)).float().mean())
+        # paired per-start PSNR difference to copy-last, with a normal 95% half-width (same starts, same frames)
+        diff = (image_metrics.psnr(decoded(tok, rows["wm"]).clamp(0, 1), real)
+                - image_metrics.psnr(decoded(tok, start_tok).clamp(0, 1), real)).double()
+        diff = diff[torch.isfinite(diff)]
+        metrics[f"h{hz}/wm_minus_copy/psnr"] = float(diff.mean()) if len(diff) else float("nan")
+        metrics[f"h{hz}/wm_minus_copy/psnr_ci95"] = float(1.96 * diff.std() / len(diff) ** 0.5) if len(diff) > 1 else float("nan")
         metrics[f"h{hz}/copy_last/token_acc"] = float((start_tok == real_tok).float().mean())
         if shuffled is not None:
             metrics[f"h{hz}/shuffled_actions/token_acc"] = float((shuffled[:, hz - 1] == real_tok.view(k, -1)).float().mean())

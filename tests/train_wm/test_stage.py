@@ -37,6 +37,7 @@ def test_stage_writes_checkpoints_metrics_and_figure(tmp_path, monkeypatch):
         for hz in (1, 5, 15):
             for row in ("wm", "copy_last", "tokenizer"):
                 assert math.isfinite(m[f"action_wm/{split}/h{hz}/{row}/psnr"])
+            assert math.isfinite(m[f"action_wm/{split}/h{hz}/wm_minus_copy/psnr"])
         assert m[f"action_wm/{split}/extreme_actions/finite"] == 1.0
         assert m[f"action_wm/{split}/extreme_actions/clip_fraction"] > 0.9
         assert 0.0 <= m[f"action_wm/{split}/done/brier"] <= 1.0
