@@ -2,8 +2,8 @@
 
 For each of N in-domain (task, scene) environments: reset the simulator (a new seed), tokenize its
 first frame, roll the trained policy closed-loop inside the action world model from that frame
-for up to ``--steps`` policy steps (recording its actions and the done head), then replay exactly
-those actions open loop in the simulator from the same initial state (each repeated
+for up to ``--steps`` policy steps (recording its actions, clipped to the world model's action
+range as the world model clips them, and the done head), then replay exactly those actions open loop in the simulator from the same initial state (each repeated
 ``frame_skip`` control steps, as in training). A world model the policy does not exploit says
 "done" mostly where the simulator says "success"; an exploited one says "done" where the
 simulator's own success check never fires.
@@ -87,9 +87,10 @@ def main() -> None:
     done_at = np.full(n, -1)
     with torch.no_grad():
         for t in range(args.steps):
-            a = np.asarray(act(model, obs, deterministic=not args.stochastic), np.float32)
-            actions[:, t] = a
-            out = roll.step(torch.as_tensor(a))
+            a = torch.as_tensor(act(model, obs, deterministic=not args.stochastic))
+            a = torch.minimum(torch.maximum(a, wm.net.action_low), wm.net.action_high)  # what the WM sees (it clips)
+            actions[:, t] = a.numpy()  # replayed as seen, so both environments get the same actions
+            out = roll.step(a)
             hit = (out.done_prob.cpu().numpy() >= args.theta) & (done_at < 0)
             done_at[hit] = t + 1
             obs = obs_fn.from_tokens(out.tokens, instructions)
