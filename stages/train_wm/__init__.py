@@ -120,8 +120,8 @@ def run(ctx) -> None:
     metrics: dict = {"episodes/train": len(train_eps), "episodes/heldout_ind": len(held_eps),
                      "episodes/ood": len(ood_eps), "vocab_size": vocab, "grid": list(grid)}
     models = {}
-    # training batches (8 clips x 8 frames x 64 tokens) use both cores: small action WM 0.49 s/step at 2 threads
-    # vs 0.85 at 1 (docs/world_model.md); rollouts and evaluation stay at 1 thread as before
+    # training batches (8 clips x 8 frames x 64 tokens) use both cores: 0.53 s/step at 2 threads vs 0.85 at 1;
+    # rollouts (a frame at a time) are faster at 1 thread (docs/world_model.md)
     if cpu:
         torch.set_num_threads(cfg.train_threads or max(1, ctx.jobs))
     for i, kind in enumerate(("action", "text")):
