@@ -33,8 +33,8 @@ def _sim_for(job: Job):
     """The worker's simulator env for ``job``, built once per process and kept open between jobs.
 
     Why kept: closing a process's last SAPIEN env releases its renderer, and the next env's first
-    pictures then cost ~12 s (shader set-up; measured 11-14 s per new env vs 0.2 s while another env
-    is alive), which made one-episode jobs ~4x their episode time. ``close_sims`` ends them.
+    pictures then cost ~12 s (measured 11-14 s inside SAPIEN's take_picture for a new env vs 0.2 s
+    while another env is alive), which made one-episode jobs ~4x their episode time. ``close_sims`` ends them.
     """
     import hashlib
     import json
