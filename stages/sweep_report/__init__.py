@@ -1,73 +1,220 @@
-"""The sweep report: every point's evaluation pooled per method (seeds aggregated), plus the reward
-diagnostics of every module. Hooked into ``pipeline.yaml`` as ``sweeps.<name>.report``."""
+"""The sweep report: every point's evaluation pooled per method (seeds aggregated), the paper's table
+layouts, success vs training wall time, training curves, reward diagnostics, rollouts and extreme
+actions. Hooked into ``pipeline.yaml`` as ``sweeps.<name>.report``; it is not a stage, so changing it
+changes no stage's cache key (a rerun of ``pipeline sweep`` rewrites the report from cached points).
+
+SFT is trained inside the rl stage from the rl seed and tasks only, so points that differ only in
+the reward module share it: its episodes are counted once per (seed, tasks), not once per point.
+"""
 from __future__ import annotations
 
-import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from stages.evaluate.report import (html_table, markdown_table, success_table, tally, write_report)
+from stages.evaluate.report import html_table, image_section, markdown_table, success_table, tally, write_report
 from stages.evaluate.writeup import METHODS
+from stages.sweep_report.figures import success_vs_time, training_curves
+from stages.sweep_report.gather import PointRun, gather
 
 ORDER = ["sft", "rule", "wm", "embedding", "proxy"]
+LABELS = {"sft": "Supervised finetune (SFT)", **METHODS}
 
 
-def _read_jsonl(path: Path) -> list[dict]:
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+def _episodes(runs: list[PointRun], snapshots: bool = False) -> list[dict]:
+    """Evaluated episodes relabelled by method (``policy`` = sft or the reward module); SFT once per sft_key."""
+    out, sft_seen = [], set()
+    for run in runs:
+        take_sft = run.sft_key not in sft_seen
+        if run.results:
+            sft_seen.add(run.sft_key)
+        for r in run.results:
+            snap = "@" in r["policy"]
+            if snap != snapshots or (r["policy"] == "sft" and not take_sft):
+                continue
+            method = "sft" if r["policy"] == "sft" else run.method
+            out.append({**r, "policy": method if not snap else f"{method}@{r['policy'].split('@', 1)[1]}",
+                        "point": run.label})
+    return out
+
+
+def _section(title: str, note: str, header: list[str], body: list[list[str]]) -> tuple[str, str, str]:
+    md = (note + "\n\n" if note else "") + markdown_table(header, body)
+    return title, md, (f"<p>{note}</p>" if note else "") + html_table(header, body)
+
+
+def _success_sections(runs: list[PointRun]) -> list[tuple[str, str, str]]:
+    sections = []
+    for single in (True, False):
+        group = [r for r in runs if (len(r.tasks) == 1) == single and r.results]
+        if not group:
+            continue
+        eps = _episodes(group)
+        counts = tally(eps)
+        tasks = list(dict.fromkeys(t for r in group for t in r.tasks))
+        methods = [m for m in ORDER if any(k[0] == m for k in counts)]
+        splits = [s for s in ("ind", "ood", "extra") if any(k[2] == s for k in counts)]
+        header, body = success_table(counts, [(LABELS[m], m) for m in methods], tasks, splits)
+        seeds = sorted({str(r.seed) for r in group})
+        note = (f"{len(group)} sweep points, rl seeds {', '.join(seeds)}; each method's episodes pooled over its seeds "
+                f"(SFT: once per seed, it does not depend on the reward); success rate [95% Wilson] "
+                f"(successes/episodes), ManiSkill's own success check. Every point is evaluated on the same initial "
+                f"states, so pooled seeds are different policies on repeated states.")
+        title = ("Table 1 layout: one policy per task" if single else
+                 f"Table 2 layout: one multi-task policy ({', '.join(tasks)})") + ", seeds pooled"
+        sections.append(_section(title, note, header, body))
+    return sections
+
+
+def _per_run_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
+    rows = []
+    for m in ORDER:
+        for split in ("ind", "ood", "extra"):
+            rates = []
+            for run in runs:
+                policy = "sft" if m == "sft" else "ppo"
+                if m != "sft" and run.method != m:
+                    continue
+                eps = [r for r in run.results if r["policy"] == policy and r["split"] == split]
+                if eps:
+                    rates.append((run.sft_key if m == "sft" else run.label, np.mean([r["success"] for r in eps])))
+            rates = list(dict(rates).values())  # SFT: one rate per sft_key
+            if rates:
+                rows.append([LABELS[m], split, str(len(rates)), " / ".join(f"{v:.3f}" for v in rates),
+                             f"{np.mean(rates):.3f}", f"{np.std(rates, ddof=1):.3f}" if len(rates) > 1 else "-"])
+    if not rows:
+        return None
+    return _section("Per-run success (tasks pooled), mean and sd over runs", "",
+                    ["method", "split", "runs", "per run", "mean", "sd over runs"], rows)
+
+
+def _cost_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
+    rows = []
+    for m in ORDER[1:]:
+        mine = [r for r in runs if r.method == m]
+        if not mine:
+            continue
+
+        def col(values: list[float], fmt: str = "{:.0f}") -> str:
+            v = [x for x in values if x == x]
+            return " / ".join(fmt.format(x) for x in v) if v else "-"
+
+        rows.append([LABELS[m], str(len(mine)), col([r.seconds.get("rl", np.nan) for r in mine]),
+                     col([r.rl_metrics.get("ppo/seconds", np.nan) for r in mine]),
+                     col([r.rl_metrics.get("ppo/env_steps_per_second", np.nan) for r in mine], "{:.1f}"),
+                     col([r.rl_metrics.get("ppo/terminated_fraction", np.nan) for r in mine], "{:.3f}"),
+                     col([r.seconds.get("evaluate", np.nan) for r in mine])])
+    if not rows:
+        return None
+    note = ("Wall seconds per run (one value per seed, in point order), as the stage manifests recorded them; the "
+            "rl stage includes SFT, reward heads and diagnostics besides PPO. Points may have run two at a time on "
+            "the same cores, which inflates these times. Terminated = fraction of PPO training episodes that the "
+            "reward's success signal ended (done head or simulator success).")
+    return _section("Cost per method", note, ["method", "runs", "rl stage s", "PPO s", "PPO env steps/s",
+                                              "terminated", "evaluate s"], rows)
+
+
+def _time_curves(runs: list[PointRun]) -> dict[str, dict[str, list[tuple[float, int, int]]]]:
+    """method -> split -> [(mean wall s, successes, n)]: SFT at 0, then each PPO snapshot pooled over seeds."""
+    curves: dict[str, dict[str, list]] = {}
+    sft = tally(_episodes(runs))
+    for m in ORDER[1:]:
+        mine = [r for r in runs if r.method == m and r.results]
+        if not mine:
+            continue
+        snaps = tally(_episodes(mine, snapshots=True))
+        walls: dict[int, list[float]] = {}
+        for r in mine:
+            for s in r.snapshots:
+                walls.setdefault(int(s["timesteps"]), []).append(float(s["wall_seconds"]))
+        by_split: dict[str, list] = {}
+        for split in ("ind", "ood", "extra"):
+            pts = [(0.0, *sft[("sft", "all", split)])] if ("sft", "all", split) in sft else []
+            for steps, w in sorted(walls.items()):
+                if (f"{m}@{steps}", "all", split) in snaps:
+                    pts.append((float(np.mean(w)), *snaps[(f"{m}@{steps}", "all", split)]))
+            if len(pts) > 1:
+                by_split[split] = pts
+        if by_split:
+            curves[m] = by_split
+    return curves
+
+
+def _copy(src: Path, out: Path, name: str) -> str | None:
+    if not src.is_file():
+        return None
+    shutil.copyfile(src, out / name)
+    return name
+
+
+def _figure_sections(runs: list[PointRun], out: Path) -> list[tuple[str, str, str]]:
+    sections = []
+    curves = _time_curves(runs)
+    if curves:
+        success_vs_time(curves, LABELS, out / "success_vs_time.png")
+        md, hb = image_section(["success_vs_time.png"])
+        note = ("Snapshots of each PPO run evaluated on a few episodes per split, pooled over seeds; x = PPO wall time "
+                "of the snapshot averaged over seeds (the rl stage's fixed costs, SFT and reward heads, excluded).")
+        sections.append(("Success vs training wall time (Fig. 2)", note + "\n\n" + md, f"<p>{note}</p>" + hb))
+    train = {m: sorted(((str(r.seed), r.training) for r in runs if r.method == m), key=lambda x: x[0]) for m in ORDER[1:]}
+    if any(eps for v in train.values() for _, eps in v):
+        training_curves(train, LABELS, out / "training_curves.png")
+        sections.append(("PPO training curves, every run (Fig. 3, left)", *image_section(["training_curves.png"])))
+    first = next(r for r in runs)
+    diag = _copy(first.rl_dir / "reward_diagnostics.png", out, "reward_diagnostics.png")
+    if diag:
+        note = f"Every reward module along held-out successful episodes, from point {first.label}."
+        md, hb = image_section([diag])
+        sections.append(("Reward along held-out successful episodes (Fig. 3, right)", note + "\n\n" + md,
+                         f"<p>{note}</p>" + hb))
+    gifs = []
+    for m in ORDER:
+        run = next((r for r in runs if r.results and (m == "sft" or r.method == m)), None)
+        if run is None:
+            continue
+        policy = "sft" if m == "sft" else "ppo"
+        for split in ("ind", "ood"):
+            name = _copy(run.eval_dir / f"rollout_{policy}_{split}.gif", out, f"rollout_{m}_{split}.gif")
+            if name:
+                gifs.append((name, f"{LABELS[m]}, {split.upper()} ({run.label})"))
+    if gifs:
+        md = "\n\n".join(f"{cap}\n\n![{n}]({n})" for n, cap in gifs)
+        hb = "".join(f"<figure><img src='{n}'><figcaption>{cap}</figcaption></figure>" for n, cap in gifs)
+        sections.append(("Rollouts in the simulator, one IND and one OOD episode per method (Figs. 4-5)", md, hb))
+    ev = next((r for r in runs if r.eval_dir is not None), None)
+    if ev is not None and _copy(ev.eval_dir / "extreme_actions.png", out, "extreme_actions.png"):
+        sections.append(("The action world model under extreme actions (Fig. 9)", *image_section(["extreme_actions.png"])))
+    return sections
+
+
+def _diagnostics_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
+    diag: dict[str, list[float]] = {}
+    for run in runs:
+        for k, v in run.rl_metrics.items():
+            if k.startswith("diagnostics/") and k.endswith("spearman_progress"):
+                diag.setdefault(k, []).append(np.nan if v is None else float(v))  # null: constant reward
+    if not diag:
+        return None
+    body = []
+    for k, v in sorted(diag.items()):
+        v = np.asarray(v)
+        ok = v[~np.isnan(v)]
+        body.append([k.removeprefix("diagnostics/"), f"{len(ok)} of {len(v)}",
+                     f"{ok.mean():.3f}" if len(ok) else "undefined (constant reward)",
+                     f"{ok.std(ddof=1):.3f}" if len(ok) > 1 else "-"])
+    return _section("Reward diagnostics: Spearman correlation of reward with progress on held-out successful episodes",
+                    "", ["metric", "runs", "mean", "sd"], body)
 
 
 def report(points: list[dict], out: Path) -> Path:
-    """Write ``report.md`` / ``report.html`` into ``out`` (the sweep's results directory)."""
-    episodes, per_seed, diag, tasks = [], {}, {}, []
-    for p in points:
-        arts = p["artifacts"]
-        rl = json.loads((arts["rl"] / "metrics.json").read_text()) if "rl" in arts else {}
-        reward = rl.get("reward", p["values"].get("rl.reward", "?"))
-        tasks = tasks or list(rl.get("tasks", []))
-        for k, v in rl.items():
-            if k.startswith("diagnostics/") and k.endswith("spearman_progress"):
-                diag.setdefault(k, []).append(np.nan if v is None else float(v))  # null: undefined (constant reward)
-        if "evaluate" not in arts:
-            continue
-        for r in _read_jsonl(arts["evaluate"] / "results.jsonl"):
-            if "@" in r["policy"]:
-                continue
-            method = "sft" if r["policy"] == "sft" else reward
-            episodes.append({**r, "policy": method})
-            seed_key = (method, p["label"])
-            per_seed.setdefault(seed_key, []).append(r)
+    """Write ``report.md`` / ``report.html`` and their figures into ``out`` (the sweep's results directory)."""
+    runs = [r for r in (gather(p) for p in points) if r is not None]
     sections = []
-    if episodes:
-        counts = tally(episodes)
-        methods = [m for m in ORDER if any(k[0] == m for k in counts)]
-        rows = [("Supervised finetune (SFT), pooled over all points" if m == "sft" else METHODS[m], m) for m in methods]
-        splits = [s for s in ("ind", "ood", "extra") if any(k[2] == s for k in counts)]
-        header, body = success_table(counts, rows, tasks, splits)
-        note = (f"{len(points)} sweep points; episodes pooled over seeds; success rate [95% Wilson] (successes/episodes).")
-        sections.append(("Success in the simulator, seeds pooled (Table 1 layout)", note + "\n\n" + markdown_table(header, body),
-                         f"<p>{note}</p>" + html_table(header, body)))
-        seed_rows = []
-        for m in methods:
-            for split in splits:
-                rates = [np.mean([r["success"] for r in rs if r["split"] == split])
-                         for (mm, _), rs in per_seed.items() if mm == m and any(r["split"] == split for r in rs)]
-                if rates:
-                    seed_rows.append([METHODS.get(m, "SFT"), split, str(len(rates)), f"{np.mean(rates):.3f}",
-                                      f"{np.std(rates, ddof=1):.3f}" if len(rates) > 1 else "-"])
-        head = ["method", "split", "runs", "mean success", "sd over runs"]
-        sections.append(("Per-run success (all tasks), mean and sd over runs", markdown_table(head, seed_rows),
-                         html_table(head, seed_rows)))
-    if diag:
-        head = ["metric", "runs", "mean", "sd"]
-        body = []
-        for k, v in sorted(diag.items()):
-            v = np.asarray(v)
-            ok = v[~np.isnan(v)]
-            body.append([k.removeprefix("diagnostics/"), f"{len(ok)} of {len(v)}",
-                         f"{ok.mean():.3f}" if len(ok) else "undefined (constant reward)",
-                         f"{ok.std(ddof=1):.3f}" if len(ok) > 1 else "-"])
-        sections.append(("Reward diagnostics: Spearman correlation of reward with progress on held-out successful "
-                         "episodes", markdown_table(head, body), html_table(head, body)))
-    write_report(out, "RoboScape-R sweep report", sections or [("No results", "No point produced rl or evaluate metrics.", None)])
+    if runs:
+        sections += _success_sections(runs)
+        sections += [s for s in (_per_run_section(runs), _cost_section(runs), _diagnostics_section(runs)) if s]
+        sections += _figure_sections(runs, out)
+    write_report(out, "RoboScape-R sweep report",
+                 sections or [("No results", "No point has a committed rl artifact yet.", None)])
     return out / "report.md"

@@ -1,0 +1,71 @@
+"""The sweep report's figures: success vs training wall time per method (Fig. 2) and PPO training
+curves per method (Fig. 3), seeds aggregated."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from stages.evaluate.report import SPLIT_NAMES
+from stages.evaluate.stats import wilson
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def success_vs_time(curves: dict[str, dict[str, list[tuple[float, int, int]]]], labels: dict[str, str],
+                    path: Path) -> None:
+    """curves[method][split] = [(wall seconds, successes, episodes)] -> one panel per split, a line per method."""
+    plt = _plt()
+    splits = [s for s in ("ind", "ood", "extra") if any(c.get(s) for c in curves.values())]
+    fig, axes = plt.subplots(1, len(splits), figsize=(5 * len(splits), 3.4), squeeze=False)
+    for ax, split in zip(axes[0], splits):
+        for i, (method, by_split) in enumerate(curves.items()):
+            pts = sorted(by_split.get(split, []))
+            if not pts:
+                continue
+            w = np.array([wilson(k, n) for _, k, n in pts])  # (P, 3): rate, low, high (high may round below rate at k = n)
+            ax.errorbar([p[0] for p in pts], w[:, 0], yerr=np.clip([w[:, 0] - w[:, 1], w[:, 2] - w[:, 0]], 0, None), marker="o",
+                        capsize=3, label=labels.get(method, method), alpha=0.85, color=f"C{i}")
+        ax.set_ylim(-0.05, 1.05)
+        ax.set_xlabel("PPO training wall time (s, mean over seeds); 0 = SFT")
+        ax.set_ylabel("success rate (95% Wilson)")
+        ax.set_title(f"{SPLIT_NAMES.get(split, split)}: success in the simulator", fontsize=9)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def training_curves(curves: dict[str, list[tuple[str, list[dict]]]], labels: dict[str, str], path: Path,
+                    window: int = 20) -> None:
+    """curves[method] = [(seed label, PPO episodes)] -> one panel per method: episode return (rolling mean of
+    ``window`` episodes) over PPO wall time, a line per seed. Returns are in each reward's own units."""
+    plt = _plt()
+    methods = [m for m, runs in curves.items() if any(eps for _, eps in runs)]
+    if not methods:
+        return
+    fig, axes = plt.subplots(1, len(methods), figsize=(3.6 * len(methods), 3.0), squeeze=False)
+    for ax, method in zip(axes[0], methods):
+        for seed, eps in curves[method]:
+            if not eps:
+                continue
+            wall = np.array([e["wall"] for e in eps], dtype=np.float64)  # (E,)
+            ret = np.array([e["return"] for e in eps], dtype=np.float64)  # (E,)
+            k = min(window, len(ret))
+            smooth = np.convolve(ret, np.ones(k) / k, mode="valid")  # (E - k + 1,)
+            ax.plot(wall, ret, ".", ms=2, alpha=0.25)
+            ax.plot(wall[k - 1:], smooth, label=f"seed {seed}", color=ax.lines[-1].get_color())
+        ax.set_title(labels.get(method, method), fontsize=8)
+        ax.set_xlabel("PPO wall time (s)")
+        ax.set_ylabel("episode return (own reward)")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

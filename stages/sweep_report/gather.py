@@ -1,0 +1,61 @@
+"""Read what a sweep point's committed rl and evaluate artifacts hold into one record."""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+
+@dataclass
+class PointRun:
+    label: str
+    method: str  # the rl stage's reward module: wm / rule / embedding / proxy
+    seed: Any  # the rl stage's seed
+    tasks: list[str]
+    rl_metrics: dict = field(default_factory=dict)
+    rl_dir: Path | None = None  # None: not committed
+    eval_dir: Path | None = None
+    results: list[dict] = field(default_factory=list)  # evaluated episodes: policy sft / ppo / ppo@<steps>
+    snapshots: list[dict] = field(default_factory=list)  # [{timesteps, wall_seconds, ...}] of PPO
+    training: list[dict] = field(default_factory=list)  # PPO episodes [{t, wall, return, length, terminated}]
+    seconds: dict[str, float] = field(default_factory=dict)  # stage -> wall seconds of its run
+
+    @property
+    def sft_key(self) -> tuple:
+        """SFT depends on the rl seed and tasks, not on the reward: points sharing this key share SFT."""
+        return (json.dumps(self.seed), tuple(self.tasks))
+
+
+def _json(path: Path, default: Any) -> Any:
+    return json.loads(path.read_text()) if path.is_file() else default
+
+
+def _jsonl(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+
+
+def _committed(path: Path | None) -> Path | None:
+    return path if path is not None and (path / "manifest.json").is_file() else None
+
+
+def gather(point: dict) -> PointRun | None:
+    """``point`` as the engine passes it ({values, label, artifacts}) -> a PointRun, None without rl."""
+    arts = point["artifacts"]
+    rl_dir = _committed(arts.get("rl"))
+    if rl_dir is None:
+        return None
+    manifest = _json(rl_dir / "manifest.json", {})
+    config = manifest.get("key_inputs", {}).get("config", {})
+    metrics = _json(rl_dir / "metrics.json", {})
+    run = PointRun(label=point["label"], method=metrics.get("reward", config.get("reward", "?")),
+                   seed=config.get("seed", point["values"].get("rl.seed")),
+                   tasks=list(metrics.get("tasks", config.get("tasks", []))), rl_metrics=metrics, rl_dir=rl_dir,
+                   snapshots=_json(rl_dir / "snapshots" / "index.json", []),
+                   training=_json(rl_dir / "episodes.json", []))
+    run.seconds["rl"] = float(manifest.get("duration_s", float("nan")))
+    run.eval_dir = _committed(arts.get("evaluate"))
+    if run.eval_dir is not None:
+        run.results = _jsonl(run.eval_dir / "results.jsonl")
+        run.seconds["evaluate"] = float(_json(run.eval_dir / "manifest.json", {}).get("duration_s", float("nan")))
+    return run

@@ -1,0 +1,83 @@
+"""The sweep report on known, hand-written point artifacts: pooled counts, SFT counted once per seed,
+per-run rates, costs and figures."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from stages.sweep_report import report
+
+TASKS = ["push", "pull"]
+
+
+def _point(root: Path, reward: str, seed: int, ppo_wins: int, sft_wins: int, snap_wins: int,
+           evaluated: bool = True, tasks: list[str] = TASKS) -> dict:
+    """A committed rl (and evaluate) artifact: 4 episodes per (policy, split), tasks alternating."""
+    rl = root / f"rl-{reward}-{seed}"
+    (rl / "snapshots").mkdir(parents=True)
+    (rl / "manifest.json").write_text(json.dumps({"duration_s": 100.0 + seed, "key_inputs": {
+        "config": {"seed": seed, "reward": reward, "tasks": tasks}}}))
+    (rl / "metrics.json").write_text(json.dumps({"reward": reward, "tasks": tasks, "ppo/seconds": 50.0,
+                                                 "ppo/env_steps_per_second": 40.0, "ppo/terminated_fraction": 0.1,
+                                                 "diagnostics/ind/wm/spearman_progress": 0.5 + seed / 10}))
+    (rl / "snapshots" / "index.json").write_text(json.dumps([{"timesteps": 100, "wall_seconds": 10.0 + seed}]))
+    (rl / "episodes.json").write_text(json.dumps([{"t": i, "wall": float(i), "return": float(i % 3), "length": 5,
+                                                   "terminated": False} for i in range(30)]))
+    arts = {"rl": rl}
+    if evaluated:
+        ev = root / f"ev-{reward}-{seed}"
+        ev.mkdir()
+        (ev / "manifest.json").write_text(json.dumps({"duration_s": 20.0}))
+        rows = []
+        for policy, wins in (("sft", sft_wins), ("ppo", ppo_wins), ("ppo@100", snap_wins)):
+            for split in ("ind", "ood"):
+                for i in range(4):
+                    rows.append({"policy": policy, "task": tasks[i % len(tasks)], "split": split, "seed": i,
+                                 "success": i < wins, "steps": 10, "instruction": "x"})
+        (ev / "results.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+        for name in ("rollout_ppo_ind.gif", "rollout_sft_ood.gif", "extreme_actions.png"):
+            (ev / name).write_bytes(b"GIF89a" if name.endswith("gif") else b"\x89PNG")
+        arts["evaluate"] = ev
+    return {"values": {"rl.reward": reward, "rl.seed": seed}, "label": f"{reward}/{seed}", "artifacts": arts}
+
+
+def test_pooled_counts_sft_once_per_seed_and_figures(tmp_path):
+    points = [_point(tmp_path, "wm", 0, ppo_wins=1, sft_wins=2, snap_wins=0),
+              _point(tmp_path, "wm", 1, ppo_wins=3, sft_wins=1, snap_wins=2),
+              _point(tmp_path, "rule", 0, ppo_wins=4, sft_wins=2, snap_wins=4),
+              _point(tmp_path, "rule", 1, ppo_wins=0, sft_wins=1, snap_wins=0, evaluated=False)]
+    out = tmp_path / "out"
+    out.mkdir()
+    md = report(points, out).read_text()
+    table = md.split("## Per-run")[0]  # the pooled success table comes first
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in table.splitlines() if line.startswith("| ")}
+    # wm: 1 + 3 of 8 IND (two seeds pooled); push gets the even-indexed wins: seed 0 -> 1 of 2, seed 1 -> 2 of 2
+    assert "0.50 [0.22, 0.78] (4/8)" in rows["PPO in world model (WM reward, ours)"]
+    assert "(3/4)" in rows["PPO in world model (WM reward, ours)"]
+    # rule: only seed 0 was evaluated
+    assert "1.00 [0.51, 1.00] (4/4)" in rows["PPO in ManiSkill (rule reward)"]
+    # SFT: seeds 0 and 1 once each (not once per point): 2 + 1 of 8
+    assert "(3/8)" in rows["Supervised finetune (SFT)"] and "(5/12)" not in rows["Supervised finetune (SFT)"]
+    assert "Table 2 layout" in md and "Table 1 layout" not in md
+    assert "0.250 / 0.750" in md  # per-run wm IND rates
+    assert "100 / 101" in md  # rl stage seconds of the two wm seeds
+    assert "ind/wm/spearman_progress | 4 of 4 | 0.550" in md
+    for name in ("success_vs_time.png", "training_curves.png", "rollout_wm_ind.gif", "rollout_sft_ood.gif",
+                 "extreme_actions.png", "report.html"):
+        assert (out / name).is_file(), name
+        assert name in md or name == "report.html"
+
+
+def test_single_task_points_make_table_1(tmp_path):
+    points = [_point(tmp_path, "wm", 0, ppo_wins=2, sft_wins=0, snap_wins=0, tasks=["push"])]
+    out = tmp_path / "out"
+    out.mkdir()
+    md = report(points, out).read_text()
+    assert "Table 1 layout: one policy per task" in md and "Table 2" not in md
+
+
+def test_no_committed_point_writes_a_clear_empty_report(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    md = report([{"values": {}, "label": "p", "artifacts": {"rl": tmp_path / "missing"}}], out).read_text()
+    assert "No point has a committed rl artifact yet" in md
