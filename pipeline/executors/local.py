@@ -2,21 +2,52 @@
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
+import signal
+import threading
+import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any, Callable, Sequence
 
 from pipeline.execute import execute_node
 
 
-def pool_map(fn: Callable[[Any], Any], items: Sequence[Any], jobs: int, desc: str, progress) -> list:
-    """``[fn(x) for x in items]`` on ``jobs`` spawned processes, results in order, with a progress bar.
+def _die_with_parent(parent: int) -> None:
+    """Pool-worker initializer: the worker ends when the process that started it dies.
 
-    Spawn (not fork): simulators and torch threads do not survive a fork reliably.
+    Without it a ``kill -9`` (or Ctrl-C, or SIGTERM) of ``pipeline run`` leaves its workers running
+    their stage to the end, holding the key's lock, so the next run waits on them without a word.
+    Linux: the kernel sends SIGKILL (prctl PR_SET_PDEATHSIG); elsewhere a thread watches the parent.
     """
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(1, int(signal.SIGKILL)) == 0:  # 1 = PR_SET_PDEATHSIG
+            if os.getppid() != parent:  # it died before prctl took effect
+                os._exit(1)
+            return
+    except (OSError, AttributeError):
+        pass
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="die-with-parent", daemon=True).start()
+
+
+def _pool(workers: int) -> ProcessPoolExecutor:
+    """Spawn (not fork): simulators and torch threads do not survive a fork reliably."""
+    return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
+                               initializer=_die_with_parent, initargs=(os.getpid(),))
+
+
+def pool_map(fn: Callable[[Any], Any], items: Sequence[Any], jobs: int, desc: str, progress) -> list:
+    """``[fn(x) for x in items]`` on ``jobs`` spawned processes, results in order, with a progress bar."""
     out: list[Any] = [None] * len(items)
-    with progress(len(items), desc, "it") as bar, ProcessPoolExecutor(
-        max_workers=min(jobs, len(items)), mp_context=mp.get_context("spawn")
-    ) as pool:
+    with progress(len(items), desc, "it") as bar, _pool(min(jobs, len(items))) as pool:
         futures = {pool.submit(fn, x): i for i, x in enumerate(items)}
         pending = set(futures)
         while pending:
@@ -47,7 +78,7 @@ class LocalExecutor:
             return
         for p in payloads:
             p["jobs"] = 1  # the pool already uses the cores
-        with ProcessPoolExecutor(max_workers=min(self.jobs, len(payloads)), mp_context=mp.get_context("spawn")) as pool:
+        with _pool(min(self.jobs, len(payloads))) as pool:
             futures = {pool.submit(execute_node, p): p for p in payloads}
             for f in futures:
                 try:

@@ -80,3 +80,35 @@ def test_failing_stage_names_itself_keeps_its_log_and_commits_nothing(ws):
     assert not list((ws.store / "tmp").glob("rl-*"))
     rec = json.loads(sorted((ws.store / "runs").glob("*.json"))[-1].read_text())
     assert rec["status"] == "failed"
+
+
+def _alive(pid: int) -> bool:
+    """True while ``pid`` runs (a zombie waiting to be reaped counts as dead)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_sigkill_of_a_parallel_sweep_takes_its_workers_down_and_the_rerun_completes(ws):
+    ws.cli("run", "--until", "goals")
+    marker = ws.root / "marker"
+    proc = ws.popen("sweep", "rewards", "--until", "rl", "--jobs", "2", TEST_SLEEP_STAGE="rl", TEST_SLEEP="120",
+                    TEST_MARKER=marker)
+    deadline = time.time() + 60
+    while not marker.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.time() < deadline
+        time.sleep(0.05)
+    workers = [int(line.split()[1]) for line in ws.exec_log.read_text().splitlines() if line.startswith("rl ")]
+    assert workers and all(w != proc.pid for w in workers)  # the rl points run in pool workers
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    deadline = time.time() + 10
+    while any(_alive(w) for w in workers) and time.time() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(w) for w in workers), "pool workers outlived the killed sweep"
+    ws.reset_log()
+    ws.cli("sweep", "rewards", "--until", "rl", "--jobs", "2")  # not blocked by a surviving worker's lock
+    assert Counter(ws.executions())["rl"] == 12
