@@ -89,5 +89,9 @@ def test_reward_sweep_reuses_the_shared_stages(store):
     for s in ("collect", "tokenize", "train_wm", "goals"):
         assert acts[(s, "ran")] == 0 and acts[(s, "cached")] == 1
     assert acts[("rl", "ran")] + acts[("rl", "cached")] == 12
-    table = json.loads(next((store / "sweeps" / "rewards").glob("*/results.json")).read_text())
+    out = next((store / "sweeps" / "rewards").glob("*/results.json")).parent
+    table = json.loads((out / "results.json").read_text())
     assert sorted({r["rl.reward"] for r in table["rows"]}) == ["embedding", "proxy", "rule", "wm"]
+    report = (out / "report.md").read_text()  # the sweep report hook, on the real rl artifacts
+    assert "Cost per method" in report and "spearman_progress" in report
+    assert (out / "training_curves.png").is_file() and (out / "reward_diagnostics.png").is_file()
