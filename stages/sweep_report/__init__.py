@@ -15,7 +15,7 @@ import numpy as np
 
 from stages.evaluate.report import html_table, image_section, markdown_table, success_table, tally, write_report
 from stages.evaluate.writeup import METHODS
-from stages.sweep_report.figures import success_vs_time, training_curves
+from stages.sweep_report.figures import rollout_strips, success_vs_time, training_curves
 from stages.sweep_report.gather import PointRun, gather
 
 ORDER = ["sft", "rule", "wm", "embedding", "proxy"]
@@ -179,6 +179,9 @@ def _figure_sections(runs: list[PointRun], out: Path) -> list[tuple[str, str, st
             if name:
                 gifs.append((name, f"{LABELS[m]}, {split.upper()} ({run.label})"))
     if gifs:
+        rollout_strips([(cap, out / n) for n, cap in gifs], out / "rollouts.png")
+        gifs.insert(0, ("rollouts.png", "Every GIF below as 8 evenly spaced GIF frames (third view; the GIF "
+                                          "encoder merges identical consecutive frames)"))
         md = "\n\n".join(f"{cap}\n\n![{n}]({n})" for n, cap in gifs)
         hb = "".join(f"<figure><img src='{n}'><figcaption>{cap}</figcaption></figure>" for n, cap in gifs)
         sections.append(("Rollouts in the simulator, one IND and one OOD episode per method (Figs. 4-5)", md, hb))

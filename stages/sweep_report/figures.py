@@ -69,3 +69,31 @@ def training_curves(curves: dict[str, list[tuple[str, list[dict]]]], labels: dic
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+def rollout_strips(gifs: list[tuple[str, Path]], path: Path, frames: int = 8) -> None:
+    """[(caption, GIF)] -> one small image: a row of ``frames`` evenly spaced frames per GIF.
+
+    Evenly spaced over the GIF's frames, not over time: the GIF encoder merges identical consecutive
+    frames (a still arm), so a still stretch counts once."""
+    from PIL import Image, ImageSequence
+
+    plt = _plt()
+    rows = []
+    for caption, gif in gifs:
+        with Image.open(gif) as im:
+            seq = [np.asarray(f.convert("RGB")) for f in ImageSequence.Iterator(im)]  # T x (H, W, 3)
+        idx = np.linspace(0, len(seq) - 1, min(frames, len(seq))).round().astype(int)
+        gap = np.full((seq[0].shape[0], 4, 3), 255, np.uint8)  # (H, 4, 3) white separator
+        strip = np.concatenate([x for i in idx for x in (seq[i], gap)][:-1], axis=1)  # (H, n*W + gaps, 3)
+        rows.append((caption, strip))
+    if not rows:
+        return
+    fig, axes = plt.subplots(len(rows), 1, figsize=(8, 1.25 * len(rows)), squeeze=False)
+    for ax, (caption, strip) in zip(axes[:, 0], rows):
+        ax.imshow(strip)
+        ax.axis("off")
+        ax.set_title(caption, fontsize=7, loc="left")
+    fig.tight_layout(pad=0.3)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

@@ -5,6 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
+from stages.evaluate.report import write_gif
 from stages.sweep_report import report
 
 TASKS = ["push", "pull"]
@@ -35,8 +38,9 @@ def _point(root: Path, reward: str, seed: int, ppo_wins: int, sft_wins: int, sna
                     rows.append({"policy": policy, "task": tasks[i % len(tasks)], "split": split, "seed": i,
                                  "success": i < wins, "steps": 10, "instruction": "x"})
         (ev / "results.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
-        for name in ("rollout_ppo_ind.gif", "rollout_sft_ood.gif", "extreme_actions.png"):
-            (ev / name).write_bytes(b"GIF89a" if name.endswith("gif") else b"\x89PNG")
+        for name in ("rollout_ppo_ind.gif", "rollout_sft_ood.gif"):
+            write_gif(np.random.default_rng(seed).integers(0, 255, (3, 8, 8, 3), dtype=np.uint8), ev / name)
+        (ev / "extreme_actions.png").write_bytes(b"\x89PNG")  # only copied
         arts["evaluate"] = ev
     return {"values": {"rl.reward": reward, "rl.seed": seed}, "label": f"{reward}/{seed}", "artifacts": arts}
 
@@ -63,7 +67,7 @@ def test_pooled_counts_sft_once_per_seed_and_figures(tmp_path):
     assert "100 / 101" in md  # rl stage seconds of the two wm seeds
     assert "ind/wm/spearman_progress | 4 of 4 | 0.550" in md
     for name in ("success_vs_time.png", "training_curves.png", "rollout_wm_ind.gif", "rollout_sft_ood.gif",
-                 "extreme_actions.png", "report.html"):
+                 "extreme_actions.png", "rollouts.png", "report.html"):
         assert (out / name).is_file(), name
         assert name in md or name == "report.html"
 
