@@ -17,7 +17,7 @@ def wilson(successes: int, n: int, z: float = 1.959964) -> tuple[float, float, f
     denom = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / denom
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return p, max(0.0, centre - half), min(1.0, centre + half)
+    return p, min(p, max(0.0, centre - half)), max(p, min(1.0, centre + half))  # p inside despite rounding
 
 
 def fmt_rate(successes: int, n: int) -> str:

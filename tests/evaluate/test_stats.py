@@ -30,3 +30,12 @@ def test_tally_pools_tasks():
           [("push", True), ("push", False), ("pull", True)]]
     c = tally(rs)
     assert c[("ppo", "push", "ind")] == (1, 2) and c[("ppo", "all", "ind")] == (2, 3)
+
+
+def test_wilson_interval_contains_the_rate_exactly():
+    # at k = n the upper bound is 1 in exact arithmetic but rounded below the rate (0.9999999999999999
+    # at 4/4 and 10/10), which made error bars negative and the success-vs-time plot raise
+    for n in range(1, 201):
+        for k in range(n + 1):
+            p, lo, hi = wilson(k, n)
+            assert lo <= p <= hi, (k, n, lo, p, hi)
