@@ -57,8 +57,8 @@ def _success_sections(runs: list[PointRun]) -> list[tuple[str, str, str]]:
         splits = [s for s in ("ind", "ood", "extra") if any(k[2] == s for k in counts)]
         header, body = success_table(counts, [(LABELS[m], m) for m in methods], tasks, splits)
         seeds = sorted({str(r.seed) for r in group})
-        note = (f"{len(group)} sweep points, rl seeds {', '.join(seeds)}; each method's episodes pooled over its seeds "
-                f"(SFT: once per seed, it does not depend on the reward); success rate [95% Wilson] "
+        note = (f"{len(group)} sweep points, rl seeds {', '.join(seeds)}; each method's episodes pooled over its points "
+                f"(SFT: once per seed and task set, it does not depend on the reward); success rate [95% Wilson] "
                 f"(successes/episodes), ManiSkill's own success check. Every point is evaluated on the same initial "
                 f"states, so pooled seeds are different policies on repeated states.")
         title = ("Table 1 layout: one policy per task" if single else
