@@ -9,7 +9,7 @@ from typing import Any
 
 @dataclass
 class PointRun:
-    label: str
+    label: str  # short, from the point's axis values: 'reward wm, seed 0'
     method: str  # the rl stage's reward module: wm / rule / embedding / proxy
     seed: Any  # the rl stage's seed
     tasks: list[str]
@@ -39,6 +39,10 @@ def _committed(path: Path | None) -> Path | None:
     return path if path is not None and (path / "manifest.json").is_file() else None
 
 
+def _short(v: Any) -> str:
+    return "+".join(map(str, v)) if isinstance(v, (list, tuple)) else str(v)
+
+
 def gather(point: dict) -> PointRun | None:
     """``point`` as the engine passes it ({values, label, artifacts}) -> a PointRun, None without rl."""
     arts = point["artifacts"]
@@ -48,7 +52,8 @@ def gather(point: dict) -> PointRun | None:
     manifest = _json(rl_dir / "manifest.json", {})
     config = manifest.get("key_inputs", {}).get("config", {})
     metrics = _json(rl_dir / "metrics.json", {})
-    run = PointRun(label=point["label"], method=metrics.get("reward", config.get("reward", "?")),
+    short = ", ".join(f"{k.rsplit('.', 1)[-1]} {_short(v)}" for k, v in point["values"].items())
+    run = PointRun(label=short or point["label"], method=metrics.get("reward", config.get("reward", "?")),
                    seed=config.get("seed", point["values"].get("rl.seed")),
                    tasks=list(metrics.get("tasks", config.get("tasks", []))), rl_metrics=metrics, rl_dir=rl_dir,
                    snapshots=_json(rl_dir / "snapshots" / "index.json", []),
