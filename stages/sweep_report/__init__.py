@@ -89,25 +89,26 @@ def _per_run_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
                     ["method", "split", "runs", "per run", "mean", "sd over runs"], rows)
 
 
+def _joined(values: list[float], fmt: str = "{:.0f}") -> str:
+    """'741 / 1340': the non-NaN values of one table cell, '-' if none."""
+    v = [x for x in values if x == x]
+    return " / ".join(fmt.format(x) for x in v) if v else "-"
+
+
 def _cost_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
     rows = []
     for m in ORDER[1:]:
         mine = [r for r in runs if r.method == m]
         if not mine:
             continue
-
-        def col(values: list[float], fmt: str = "{:.0f}") -> str:
-            v = [x for x in values if x == x]
-            return " / ".join(fmt.format(x) for x in v) if v else "-"
-
-        rows.append([LABELS[m], str(len(mine)), col([r.seconds.get("rl", np.nan) for r in mine]),
-                     col([r.rl_metrics.get("ppo/seconds", np.nan) for r in mine]),
-                     col([r.rl_metrics.get("ppo/env_steps_per_second", np.nan) for r in mine], "{:.1f}"),
-                     col([r.rl_metrics.get("ppo/terminated_fraction", np.nan) for r in mine], "{:.3f}"),
-                     col([r.seconds.get("evaluate", np.nan) for r in mine])])
+        rows.append([LABELS[m], str(len(mine)), _joined([r.seconds.get("rl", np.nan) for r in mine]),
+                     _joined([r.rl_metrics.get("ppo/seconds", np.nan) for r in mine]),
+                     _joined([r.rl_metrics.get("ppo/env_steps_per_second", np.nan) for r in mine], "{:.1f}"),
+                     _joined([r.rl_metrics.get("ppo/terminated_fraction", np.nan) for r in mine], "{:.3f}"),
+                     _joined([r.seconds.get("evaluate", np.nan) for r in mine])])
     if not rows:
         return None
-    note = ("Wall seconds per run (one value per seed, in point order), as the stage manifests recorded them; the "
+    note = ("Wall seconds per run (one value per point, in point order), as the stage manifests recorded them; the "
             "rl stage includes SFT, reward heads and diagnostics besides PPO. Points may have run two at a time on "
             "the same cores, which inflates these times. Terminated = fraction of PPO training episodes that the "
             "reward's success signal ended (done head or simulator success).")
@@ -161,7 +162,7 @@ def _figure_sections(runs: list[PointRun], out: Path) -> list[tuple[str, str, st
     if any(eps for v in train.values() for _, eps in v):
         training_curves(train, LABELS, out / "training_curves.png")
         sections.append(("PPO training curves, every run (Fig. 3, left)", *image_section(["training_curves.png"])))
-    first = next(r for r in runs)
+    first = runs[0]
     diag = _copy(first.rl_dir / "reward_diagnostics.png", out, "reward_diagnostics.png")
     if diag:
         note = f"Every reward module along held-out successful episodes, from point {first.label}."
