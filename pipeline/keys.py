@@ -4,6 +4,12 @@
 the stage's own section after validation through its pydantic ``Config`` (defaults filled, ints
 coerced to floats where the field is a float), ``code`` is a digest of the stage's source, and
 ``inputs`` maps each needed stage to *its* key. Artifact bytes are never read to decide anything.
+
+Keys follow the science, not the engine: the code digest never includes the engine's own package
+(``ENGINE_PACKAGES``), even where a stage imports ``pipeline.context`` for a type. What the engine
+does to an artifact is versioned by ``ENGINE_VERSION`` instead, bumped by hand when an engine change
+alters what a stage produces (it never has so far), so editing ``pipeline/progress.py`` does not
+re-collect 22 minutes of data.
 """
 from __future__ import annotations
 
@@ -17,6 +23,8 @@ from typing import Any, Iterable, Mapping
 import blake3
 
 KEY_SCHEMA = 1
+ENGINE_VERSION = 1
+ENGINE_PACKAGES = frozenset({"pipeline"})  # top-level packages that are the engine, never hashed into a stage
 _SKIP_DIRS = {"__pycache__", ".pytest_cache"}
 _SKIP_SUFFIXES = {".pyc", ".pyo"}
 
@@ -30,6 +38,7 @@ def stage_key(stage: str, version: int, code_digest: str, config: Mapping[str, A
     """The content address of a stage's output; see the module docstring."""
     payload = {
         "schema": KEY_SCHEMA,
+        "engine": ENGINE_VERSION,
         "stage": stage,
         "version": version,
         "code": code_digest,
@@ -97,8 +106,9 @@ def source_closure(module: str, roots: Iterable[Path]) -> list[Path]:
     """Files whose content defines a stage's behaviour.
 
     Every file of the stage's own package (data files included), plus, transitively, every
-    project-local module it imports (found statically by reading ``import`` statements). Third-party
-    packages are pinned by requirements.lock and are not hashed.
+    project-local module it imports (found statically by reading ``import`` statements), except the
+    engine's (``ENGINE_PACKAGES``). Third-party packages are pinned by requirements.lock and are not
+    hashed.
     """
     roots = [Path(r).resolve() for r in roots]
     entry = _module_file(module, roots)
@@ -122,6 +132,8 @@ def source_closure(module: str, roots: Iterable[Path]) -> list[Path]:
             continue
         seen.add(f)
         for name in _imports_of(f, f.stat().st_mtime_ns):
+            if name.split(".")[0] in ENGINE_PACKAGES:
+                continue  # the engine is versioned by ENGINE_VERSION, not by its bytes
             dep = _module_file(name, roots)
             if dep is None:
                 continue

@@ -61,6 +61,7 @@ class Episode:
     qpos: np.ndarray  # (T+1, 9) float32
     reward: np.ndarray  # (T,) float32, normalized dense rule reward after each action
     success: np.ndarray  # (T+1,) bool, the task's success check at each frame
+    obj_pose: np.ndarray | None = None  # (T+1, 7) float32 object xyz + quaternion wxyz (world); probes only
 
 
 def write_index(out_dir: Path, metas: list[EpisodeMeta]) -> Path:
@@ -130,6 +131,7 @@ class Dataset:
             qpos=np.asarray([s["qpos"] for s in steps], np.float32),
             reward=np.asarray([s["reward"] for s in steps[:T]], np.float32),
             success=np.asarray([s["success"] for s in steps], bool),
+            obj_pose=np.asarray([s["obj_pose"] for s in steps], np.float32) if "obj_pose" in steps[0] else None,
         )
 
     def iter_frames(self, view: str = "third", split: str | None = None) -> Iterator[tuple[str, int, np.ndarray]]:

@@ -45,6 +45,7 @@ class Recording:
     qpos: np.ndarray
     reward: np.ndarray
     success: np.ndarray
+    obj_pose: np.ndarray
 
 
 def layout_from_env(env) -> Layout:
@@ -117,7 +118,7 @@ class PlanRunner:
     # -- recording --------------------------------------------------------------------------
     def run(self, plan: list, obs, info) -> Recording:
         """Execute ``plan`` from the env's current state (``obs``, ``info`` from its reset)."""
-        frames: dict[str, list] = {k: [] for k in ("third", "wrist", "ee_pose", "qpos", "action", "reward", "success")}
+        frames: dict[str, list] = {k: [] for k in ("third", "wrist", "ee_pose", "qpos", "action", "reward", "success", "obj_pose")}
         self._record_obs(frames, obs, info)
         gripper = GRIPPER_OPEN
         hold = self._tcp_at_base()
@@ -139,7 +140,7 @@ class PlanRunner:
             third=np.stack(frames["third"]), wrist=np.stack(frames["wrist"]),
             action=np.stack(frames["action"]).astype(np.float32), ee_pose=np.stack(frames["ee_pose"]).astype(np.float32),
             qpos=np.stack(frames["qpos"]).astype(np.float32), reward=np.asarray(frames["reward"], np.float32),
-            success=np.asarray(frames["success"], bool),
+            success=np.asarray(frames["success"], bool), obj_pose=np.stack(frames["obj_pose"]).astype(np.float32),
         )
 
     def _step(self, frames: dict, action: np.ndarray):
@@ -158,6 +159,7 @@ class PlanRunner:
         frames["ee_pose"].append(obs["extra"]["tcp_pose"][0].cpu().numpy())
         frames["qpos"].append(obs["agent"]["qpos"][0].cpu().numpy())
         frames["success"].append(bool(info["success"].reshape(-1)[0]))
+        frames["obj_pose"].append(self.env.unwrapped.obj.pose.raw_pose[0].cpu().numpy())  # ground truth for probes only
 
 
 def replay(env, seed: int, actions: np.ndarray, options: dict | None = None) -> np.ndarray:

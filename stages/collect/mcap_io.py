@@ -3,7 +3,7 @@
 Layout (documented for users in docs/mcap_schema.md):
   - ``/third/image``, ``/wrist/image``: ``foxglove.CompressedImage`` (JSON encoding; ``data`` is
     base64 PNG, lossless so a frame read back equals the frame rendered), one per observed frame;
-  - ``/step``: ``roboscape.Step`` (JSON) per observed frame: ee_pose, qpos, success, and the action
+  - ``/step``: ``roboscape.Step`` (JSON) per observed frame: ee_pose, qpos, obj_pose, success, and the action
     taken / reward received after it (null on the last frame);
   - ``/episode``: ``roboscape.Episode`` (JSON) once at each episode's start, plus an MCAP metadata
     record named ``episode`` with the same fields as strings (readable from the summary alone).
@@ -46,6 +46,8 @@ STEP_SCHEMA = {
         "t": {"type": "integer"},
         "ee_pose": {"type": "array", "items": {"type": "number"}, "description": "TCP xyz + quaternion wxyz, world frame"},
         "qpos": {"type": "array", "items": {"type": "number"}},
+        "obj_pose": {"type": "array", "items": {"type": "number"},
+                     "description": "object centre xyz + quaternion wxyz, world frame (ground truth for probes; never a policy input)"},
         "success": {"type": "boolean"},
         "action": {"type": ["array", "null"], "items": {"type": "number"}, "description": "7-d delta EE action taken after this frame"},
         "reward": {"type": ["number", "null"]},
@@ -112,6 +114,7 @@ class ShardWriter:
                 self._w.add_message(self._ch[v], log_time=ts, publish_time=ts, data=json.dumps(msg).encode(), sequence=t)
             step = {
                 "episode_id": eid, "t": t, "ee_pose": _floats(arrays["ee_pose"][t]), "qpos": _floats(arrays["qpos"][t]),
+                **({"obj_pose": _floats(arrays["obj_pose"][t])} if arrays.get("obj_pose") is not None else {}),
                 "success": bool(arrays["success"][t]),
                 "action": _floats(arrays["action"][t]) if t < T else None,
                 "reward": float(np.float32(arrays["reward"][t])) if t < T else None,
