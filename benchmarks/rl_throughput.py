@@ -40,6 +40,7 @@ def tokenizer():
 def action_wm(tok):
     from stages.train_wm import Config as WMConfig
     from stages.train_wm.model import WMSpec, WorldModelNet
+    from stages.train_wm.proprio import ProprioHead
     from stages.train_wm.rollout import WorldModel
 
     c = WMConfig()
@@ -48,7 +49,7 @@ def action_wm(tok):
                                heads=c.heads, head_depth=c.head_depth, mlp_ratio=c.mlp_ratio, window=c.window,
                                control_tokens=c.control_tokens, frame_skip=c.frame_skip))
     net.set_action_stats(torch.rand(256, 7) * 2 - 1)
-    return WorldModel(net.eval(), decode_steps=c.decode_steps)
+    return WorldModel(net.eval(), decode_steps=c.decode_steps, proprio_head=ProprioHead(tok.bits, tok.grid).eval())
 
 
 def ppo_cfg(num_envs: int):
@@ -58,10 +59,22 @@ def ppo_cfg(num_envs: int):
     return SimpleNamespace(**{**c.model_dump(), "n_steps": 64, "batch_size": min(256, 64 * num_envs)})
 
 
-def timed_learn(env, steps: int, num_envs: int) -> float:
-    from stages.rl.policy import make_ppo
+def sft_policy(space):
+    """An untrained policy of the sft stage's architecture and its policy.json facts."""
+    from stages.sft import Config as SFTConfig
+    from stages.sft.policy import make_policy, policy_kwargs
 
-    model = make_ppo(env, ppo_cfg(num_envs), seed=0, device="cpu")
+    c = SFTConfig()
+    kwargs = policy_kwargs([0.0] * 7, [0.1] * 6 + [1.0], features_dim=c.features_dim, net_arch=c.net_arch)
+    info = {"policy_kwargs": {k: v for k, v in kwargs.items() if k != "features_extractor_class"}}
+    return make_policy(space, kwargs), info
+
+
+def timed_learn(env, steps: int, num_envs: int) -> float:
+    from stages.rl.ppo import make_ppo
+
+    policy, info = sft_policy(env.observation_space)
+    model = make_ppo(env, ppo_cfg(num_envs), policy, info, device="cpu")
     model.learn(total_timesteps=64 * num_envs)  # warm-up: one rollout + update
     t = time.perf_counter()
     model.learn(total_timesteps=steps, reset_num_timesteps=False)
@@ -81,15 +94,15 @@ def main() -> None:
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     from stages.collect.sim import default_catalog
-    from stages.rl.observation import ObservationFn
     from stages.rl.rewards import GoalDistance, WMReward
     from stages.rl.sim_env import SimSpec, SimTaskEnv
     from stages.rl.wm_env import Start, WorldModelVecEnv
+    from stages.sft.observation import ObservationFn
 
     tok = tokenizer()
     scene = next(s for s in default_catalog().values() if s.split == "ind")
     probe = SimTaskEnv([SimSpec("push", scene.to_dict())], ObservationFn(tok, {}), max_steps=50, keep_frames=True)
-    probe.reset(seed=0)
+    first, _ = probe.reset(seed=0)
     instruction = probe.instruction
     third, wrist = probe.frames[0]
     probe.close()
@@ -100,7 +113,7 @@ def main() -> None:
     wm = action_wm(tok)
     goal = tok.decode(torch.as_tensor(tokens[None]))
     reward = WMReward(GoalDistance(*goal), alpha=2.0, beta=0.02, theta_sps=0.5, num_envs=args.num_envs)
-    wm_env = WorldModelVecEnv(wm, tok, obs_fn, reward, [Start(0, instruction, tokens)], num_envs=args.num_envs,
+    wm_env = WorldModelVecEnv(wm, tok, obs_fn, reward, [Start(0, instruction, tokens, first["proprio"])], num_envs=args.num_envs,
                               max_steps=50, theta_done=0.999, seed=0)
     wm_rate = timed_learn(wm_env, args.wm_steps, args.num_envs)
 

@@ -23,7 +23,7 @@ class StageSpec(BaseModel):
 
 
 class SweepSpec(BaseModel):
-    """An ablation: the cartesian product of `axes` (dotted config paths -> values)."""
+    """An ablation: the cartesian product of `axes` (dotted config paths -> values; 'a.x+b.y' sets both paths to each value)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     axes: dict[str, list[Any]] = Field(description="e.g. {'rl.reward': [wm, rule], 'rl.seed': [0, 1]}")
@@ -37,8 +37,8 @@ class SweepSpec(BaseModel):
         if not axes:
             raise ValueError("a sweep needs at least one axis")
         for path, values in axes.items():
-            if "." not in path:
-                raise ValueError(f"axis {path!r} must be a dotted path 'stage.key'")
+            if any("." not in part for part in path.split("+")):
+                raise ValueError(f"axis {path!r} must be a dotted path 'stage.key' (or paths tied with '+')")
             if not values:
                 raise ValueError(f"axis {path!r} has no values")
         return axes
@@ -113,9 +113,10 @@ def _check_references(spec: PipelineSpec, path: Path) -> None:
         raise PipelineError(f"{path}: default_profile {spec.default_profile!r} is not one of profiles: {', '.join(spec.profiles) or '(none)'}")
     for sw_name, sw in spec.sweeps.items():
         for axis in sw.axes:
-            stage = axis.split(".", 1)[0]
-            if stage not in names:
-                raise PipelineError(f"{path}: sweeps.{sw_name}.axes.{axis}: unknown stage {stage!r}; known stages: {', '.join(spec.stages)}")
+            for part in axis.split("+"):
+                stage = part.strip().split(".", 1)[0]
+                if stage not in names:
+                    raise PipelineError(f"{path}: sweeps.{sw_name}.axes.{axis}: unknown stage {stage!r}; known stages: {', '.join(spec.stages)}")
         if sw.until is not None and sw.until not in names:
             raise PipelineError(f"{path}: sweeps.{sw_name}.until: unknown stage {sw.until!r}; known stages: {', '.join(spec.stages)}")
     from pipeline.graph import topo_order  # cycle check names the cycle

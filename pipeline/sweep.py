@@ -29,6 +29,21 @@ class Point:
         return self.nodes[-1]
 
 
+def axis_paths(axis: str) -> list[str]:
+    """The config paths an axis sets: ``'sft.seed+rl.seed'`` ties two paths to one value per point."""
+    return [p.strip() for p in axis.split("+")]
+
+
+def _resolve_axis(name: str, given: str, axes: list[str]) -> str:
+    """The sweep axis that ``--axis given=...`` means: its exact name, or the one tied axis naming that path."""
+    if given in axes:
+        return given
+    hits = [a for a in axes if given in axis_paths(a)]
+    if len(hits) != 1:
+        raise PipelineError(f"--axis {given!r}: not an axis of sweep {name!r}; its axes: {', '.join(axes)}")
+    return hits[0]
+
+
 def parse_axes(items: list[str]) -> dict[str, list]:
     """``--axis PATH=[v1, v2]`` strings -> {path: values}; values are a non-empty YAML list."""
     import yaml
@@ -50,7 +65,8 @@ def expand(project: Project, name: str, profile: str | None, sets: dict, until: 
            axis_values: dict[str, list] | None = None) -> tuple[list[Point], str]:
     """Every point of sweep ``name`` as planned nodes, and the sweep's last stage.
 
-    ``axis_values`` replaces the values of some of the sweep's axes (``--axis rl.seed=[0,1]``).
+    ``axis_values`` replaces the values of some of the sweep's axes (``--axis rl.seed=[0,1]``; a path
+    of a tied axis such as ``sft.seed+rl.seed`` names that whole axis).
     """
     if name not in project.spec.sweeps:
         raise PipelineError(f"sweep {name!r}: unknown sweep; known: {', '.join(project.spec.sweeps) or '(none)'}")
@@ -58,19 +74,18 @@ def expand(project: Project, name: str, profile: str | None, sets: dict, until: 
     last = until or sw.until or project.order[-1]
     if last not in project.needs:
         raise PipelineError(f"--until: unknown stage {last!r}; known stages: {', '.join(project.order)}")
-    unknown = sorted(set(axis_values or {}) - set(sw.axes))
-    if unknown:
-        raise PipelineError(f"--axis {unknown[0]!r}: not an axis of sweep {name!r}; its axes: {', '.join(sw.axes)}")
-    axes = [(path, (axis_values or {}).get(path, vals)) for path, vals in sw.axes.items()]
-    axis_overrides = parse_set([f"{path}=x" for path, _ in axes])  # shape only, validated below
+    given = {_resolve_axis(name, k, list(sw.axes)): v for k, v in (axis_values or {}).items()}
+    axes = [(path, given.get(path, vals)) for path, vals in sw.axes.items()]
+    axis_overrides = parse_set([f"{p}=x" for path, _ in axes for p in axis_paths(path)])  # shape only, validated below
     project.check_overrides(axis_overrides, f"sweeps.{name}.axes")
     points = []
     for combo in itertools.product(*(vals for _, vals in axes)):
         values = {path: v for (path, _), v in zip(axes, combo)}
         over: dict[str, dict[str, Any]] = {}
-        for path, v in values.items():
-            stage, *rest = path.split(".")
-            assign(over.setdefault(stage, {}), rest, v)
+        for axis, v in values.items():
+            for path in axis_paths(axis):
+                stage, *rest = path.split(".")
+                assign(over.setdefault(stage, {}), rest, v)
         merged = deep_merge(sets, over)
         label = f"sweep:{name}:" + ",".join(f"{k}={v}" for k, v in values.items())
         nodes = project.plan([last], profile, merged, label)

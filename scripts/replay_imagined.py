@@ -8,7 +8,7 @@ range as the world model clips them, and the done head), then replay exactly tho
 "done" mostly where the simulator says "success"; an exploited one says "done" where the
 simulator's own success check never fires.
 
-    PYTHONPATH=. .venv/bin/python scripts/replay_imagined.py <collect> <tokenize> <train_wm> <rl> \\
+    PYTHONPATH=. .venv/bin/python scripts/replay_imagined.py <collect> <tokenize> <train_wm> <sft> <rl> \\
         [--policy ppo] [--envs 24] [--steps 75]
 
 Prints, per policy: imagined done rate (done head >= theta at any step), simulator success rate of
@@ -27,7 +27,7 @@ import torch
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    for name in ("collect", "tokenize", "train_wm", "rl"):
+    for name in ("collect", "tokenize", "train_wm", "sft", "rl"):
         ap.add_argument(name, type=Path)
     ap.add_argument("--policy", choices=["ppo", "sft"], default="ppo")
     ap.add_argument("--envs", type=int, default=24, help="IND environments (spread over the 4 tasks)")
@@ -41,18 +41,18 @@ def main() -> None:
     from stages.collect.catalog import read_scenes_json
     from stages.evaluate.stats import wilson
     from stages.goals.environments import list_environments
-    from stages.rl import load_policy
-    from stages.rl.observation import ObservationFn
-    from stages.rl.policy import act
     from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.sft import TEXT_EMBEDDINGS
+    from stages.sft.observation import ObservationFn
+    from stages.sft.policy import POLICY_FILE, act, load_policy
     from stages.tokenize.tokenizer import load_tokenizer
-    from stages.train_wm.rollout import TEXT_EMBEDDINGS, load_world_model
+    from stages.train_wm.rollout import load_world_model
 
     tok = load_tokenizer(args.tokenize, "cpu")
-    obs_fn = ObservationFn(tok, json.loads((args.train_wm / TEXT_EMBEDDINGS).read_text()))
+    obs_fn = ObservationFn(tok, json.loads((args.sft / TEXT_EMBEDDINGS).read_text()))
     wm = load_world_model(args.train_wm, "action", "cpu")
     k = int(wm.spec.frame_skip)
-    model = load_policy(args.rl / ("policy.zip" if args.policy == "ppo" else "sft_policy.zip"), "cpu")
+    model = load_policy(args.rl / "policy.zip" if args.policy == "ppo" else args.sft / POLICY_FILE, "cpu")
     catalog = read_scenes_json(args.collect / "scenes.json")
     envs = [e for e in list_environments(args.collect) if e.split == "ind"]
     by_task: dict[str, list] = {}
@@ -63,14 +63,15 @@ def main() -> None:
               for i in range(args.envs)]
 
     # 1. the simulator's initial frames
-    starts, specs, seeds, instructions = [], [], [], []
+    starts, specs, seeds, instructions, proprio0 = [], [], [], [], []
     sim = None
     for i, e in enumerate(picked):
         spec = SimSpec(e.task, catalog[e.scene_id].to_dict())
         if sim is None:
             sim = SimTaskEnv([spec], obs_fn, max_steps=args.steps, action_repeat=k, keep_frames=True)
         sim.keep_frames = True
-        sim.reset(seed=args.seed + i, options={"spec": spec})
+        first, _ = sim.reset(seed=args.seed + i, options={"spec": spec})
+        proprio0.append(first["proprio"])
         third, wrist = sim.frames[0]
         starts.append(tok.encode(third[None], wrist[None])[0])
         specs.append(spec)
@@ -82,7 +83,8 @@ def main() -> None:
     n = len(picked)
     roll = wm.rollout(n)
     roll.reset(tokens0)
-    obs = obs_fn.from_tokens(tokens0, instructions)
+    proprio = torch.as_tensor(np.stack(proprio0))  # (N, 10)
+    obs = obs_fn.from_tokens(tokens0, proprio.numpy(), instructions)
     actions = np.zeros((n, args.steps, 7), np.float32)
     done_at = np.full(n, -1)
     with torch.no_grad():
@@ -91,9 +93,10 @@ def main() -> None:
             a = torch.minimum(torch.maximum(a, wm.net.action_low), wm.net.action_high)  # what the WM sees (it clips)
             actions[:, t] = a.numpy()  # replayed as seen, so both environments get the same actions
             out = roll.step(a)
+            proprio = wm.next_proprio(proprio, a, out.tokens)
             hit = (out.done_prob.cpu().numpy() >= args.theta) & (done_at < 0)
             done_at[hit] = t + 1
-            obs = obs_fn.from_tokens(out.tokens, instructions)
+            obs = obs_fn.from_tokens(out.tokens, proprio.numpy(), instructions)
 
     # 3. replay the imagined actions in the simulator from the same initial states
     success = np.zeros(n, bool)

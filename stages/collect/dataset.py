@@ -134,6 +134,25 @@ class Dataset:
             obj_pose=np.asarray([s["obj_pose"] for s in steps], np.float32) if "obj_pose" in steps[0] else None,
         )
 
+    def load_states(self, episode_id: str) -> dict[str, np.ndarray]:
+        """An episode's states and actions without its images (cheap: no PNG decoding).
+
+        Returns ``ee_pose`` (T+1, 7), ``qpos`` (T+1, 9), ``success`` (T+1,), ``action`` (T, 7),
+        ``reward`` (T,) and, in shards that record it, ``obj_pose`` (T+1, 7).
+        """
+        m = self.meta(episode_id)
+        steps = [msg for _, _, msg in mcap_io.iter_messages(self._shard(m), ["/step"], m.start_ns, m.end_ns)]
+        if len(steps) != m.length + 1:
+            raise RuntimeError(f"episode {episode_id} in {self._shard(m)}: expected {m.length + 1} steps, found {len(steps)}")
+        out = {"ee_pose": np.asarray([s["ee_pose"] for s in steps], np.float32),
+               "qpos": np.asarray([s["qpos"] for s in steps], np.float32),
+               "success": np.asarray([s["success"] for s in steps], bool),
+               "action": np.asarray([s["action"] for s in steps[: m.length]], np.float32).reshape(m.length, 7),
+               "reward": np.asarray([s["reward"] for s in steps[: m.length]], np.float32)}
+        if "obj_pose" in steps[0]:
+            out["obj_pose"] = np.asarray([s["obj_pose"] for s in steps], np.float32)
+        return out
+
     def iter_frames(self, view: str = "third", split: str | None = None) -> Iterator[tuple[str, int, np.ndarray]]:
         """Stream (episode_id, t, (H, W, 3) uint8) for every frame of the selected episodes, one
         shard at a time, without holding more than one frame in memory."""

@@ -1,7 +1,7 @@
 """evaluate: success of the trained policies back in the simulator, in-domain and out-of-domain,
 with the paper's table layouts, figures and rollout GIFs.
 
-Each policy the rl stage produced (the behaviour-cloned ``sft`` policy and the ``ppo`` policy
+Each policy (the sft stage's behaviour-cloned ``sft`` policy and the rl stage's ``ppo`` policy
 trained with ``rl.reward``) runs in ManiSkill with the task's own success check: in-domain (the
 training scenes, initial states never used in collection) and out-of-domain (the catalog's held-out
 scenes: unseen objects and unseen object-container pairs), plus any ``extra_scenes``. Success rates
@@ -11,8 +11,9 @@ or Ray tasks under ``--executor ray``).
 Inputs:
     collect -- scene catalog and split (scenes.json), which scenes were trained on
     tokenize -- the tokenizer (the policy's observation function)
-    train_wm -- text embeddings (instructions), the action WM (extreme-action figure), its split
-    rl -- sft_policy.zip, policy.zip, snapshots/, metrics.json (reward module, tasks),
+    train_wm -- the action WM (extreme-action figure), its split
+    sft -- sft_policy.pt, text embeddings (instructions)
+    rl -- policy.zip, snapshots/, metrics.json (reward module, tasks, frame skip),
           training.png, reward_diagnostics.png
 
 Outputs:
@@ -25,7 +26,7 @@ Outputs:
 
 Key includes:
     this config (episode counts, horizon, seeds, extra scenes: their content, not a file path) and
-    the keys of collect, tokenize, train_wm and rl. Adding evaluation scenes reruns only evaluate.
+    the keys of collect, tokenize, train_wm, sft and rl. Adding evaluation scenes reruns only evaluate.
 
 Toy profile:
     2 episodes per (policy, task, split), 1 snapshot episode, horizon 20.
@@ -47,7 +48,7 @@ class Config(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     seed: int = Field(0, description="base of the evaluation episodes' seeds (kept far from collection seeds)")
-    episodes: int = Field(10, ge=1, description="episodes per (policy, task, split)")
+    episodes: int = Field(25, ge=1, description="episodes per (policy, task, split); the same initial states for every policy")
     max_steps: int = Field(75, ge=1, description="episode horizon in policy steps of frame_skip control steps each "
                            "(planner demos take ~100-280 control steps = 25-70 policy steps at frame_skip 4)")
     policies: list[Literal["sft", "ppo"]] = Field(["sft", "ppo"], min_length=1, description="which rl outputs to evaluate")

@@ -41,8 +41,8 @@ def _sim_for(job: Job):
 
     import torch
 
-    from stages.rl.observation import ObservationFn
     from stages.rl.sim_env import SimTaskEnv
+    from stages.sft.observation import ObservationFn
     from stages.tokenize.tokenizer import load_tokenizer
 
     text_id = hashlib.blake2b(json.dumps(job.text_embeddings, sort_keys=True).encode(), digest_size=8).hexdigest()
@@ -70,8 +70,7 @@ def close_sims() -> None:
 
 def run_job(job: Job) -> list[dict]:
     """One result dict per seed: success (the task's own check at any step), steps, optional frames."""
-    from stages.rl import load_policy
-    from stages.rl.policy import act
+    from stages.sft.policy import act, load_policy
 
     env = _sim_for(job)
     model = load_policy(job.policy_path, job.device)

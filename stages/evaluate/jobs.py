@@ -27,9 +27,16 @@ def scenes_by_split(ctx, cfg, tasks: list[str]) -> dict[tuple[str, str], list[di
 
 
 def _text(ctx) -> dict:
-    from stages.train_wm.rollout import TEXT_EMBEDDINGS
+    from stages.sft import TEXT_EMBEDDINGS
 
-    return json.loads((ctx.input("train_wm") / TEXT_EMBEDDINGS).read_text())
+    return json.loads((ctx.input("sft") / TEXT_EMBEDDINGS).read_text())
+
+
+def policy_paths(ctx) -> dict[str, Path]:
+    """Evaluated policy label -> file: the sft stage's policy and the rl stage's PPO policy."""
+    from stages.sft.policy import POLICY_FILE
+
+    return {"sft": ctx.input("sft") / POLICY_FILE, "ppo": ctx.input("rl") / "policy.zip"}
 
 
 def _spread(policy: str, path: Path, task: str, split: str, scenes: list[dict], n: int, seed0: int, ctx, cfg,
@@ -53,10 +60,10 @@ def build_jobs(ctx, cfg, rl_metrics: dict) -> list[Job]:
     tasks = list(rl_metrics["tasks"])
     scenes = scenes_by_split(ctx, cfg, tasks)
     text = _text(ctx)
-    files = {"sft": "sft_policy.zip", "ppo": "policy.zip"}
+    paths = policy_paths(ctx)
     jobs = []
     for policy in cfg.policies:
-        path = ctx.input("rl") / files[policy]
+        path = paths[policy]
         for split in cfg.splits:
             recorded = False
             for ti, task in enumerate(tasks):

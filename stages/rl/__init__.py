@@ -1,53 +1,48 @@
-"""rl: a policy trained by PPO inside the action world model (or, for ``reward: rule``, inside the
-simulator), after behaviour cloning on planner demonstrations.
+"""rl: the sft stage's policy fine-tuned by PPO inside the action world model (or, for
+``reward: rule``, inside the simulator).
 
 The world model is the environment (``WorldModelVecEnv``) and, for ``reward: wm``, also the reward:
 alpha * sparse (its done head >= theta_sps) + beta * dense (perceptual similarity to the goal frame
 the text world model imagined). Baselines share everything but the reward: ``rule`` trains in
 ManiSkill on the task's hand-written dense reward; ``embedding`` (iVideoGPT-style) and ``proxy``
 (DiWA-style) are reward models fitted to that rule reward. Multi-scene: every training
-environment (task x scene) of ``tasks`` is sampled at every reset; multi-task: ``tasks`` lists
-several tasks and the instruction tells the policy which.
+environment (task x scene) of the SFT policy's tasks is sampled at every reset; multi-task: the
+sft stage's ``tasks`` lists several tasks and the instruction tells the policy which.
 
 Inputs:
     collect -- episodes (demonstrations, initial states, rule-reward labels), scene catalog
     tokenize -- token store and tokenizer (the observation function)
-    train_wm -- the action world model, its train / held-out / OOD split, text embeddings
+    train_wm -- the action world model (with its proprioception head), its split, text embeddings
     goals -- one goal frame per environment
+    sft -- the behaviour-cloned policy PPO starts from, its tasks and frame skip (``policy.json``)
 
 Outputs:
     policy.zip          the PPO policy (stable-baselines3), loaded with ``stages.rl.load_policy``
-    sft_policy.zip      the policy after behaviour cloning only (the "Supervised Finetune" row)
     snapshots/          policies at evenly spaced points of training + index.json (timesteps, wall s)
     reward_heads.pt     fitted embedding / proxy heads (when fitted)
     episodes.json       every training episode: return, length, terminated by done head or truncated
     training.png        episode return over env steps
     reward_diagnostics.png  each module's reward along held-out successful episodes, IND and OOD
-    metrics.json        SFT loss, PPO summary, env steps/s, policy parameter change, diagnostics
+    metrics.json        PPO summary, env steps/s, policy parameter change from SFT, diagnostics
                         (mean Spearman correlation of reward with progress per module and split)
 
 Key includes:
-    this config (reward module and its weights, PPO / SFT hyper-parameters, tasks, seed) and the
-    keys of collect, tokenize, train_wm and goals.
+    this config (reward module and its weights, PPO hyper-parameters, seed) and the keys of
+    collect, tokenize, train_wm, goals and sft.
 
 Toy profile:
-    4 world-model envs, a few hundred PPO steps, 2 SFT epochs, tiny head fits; ``rule`` uses one
-    simulator env and fewer steps.
+    4 world-model envs, a few hundred PPO steps, tiny head fits; ``rule`` uses one simulator env
+    and fewer steps.
 """
 from __future__ import annotations
 
-import json
-import time
-from pathlib import Path
 from typing import Literal
 
-import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from stages.rl.rewards import REWARDS
 
-TASKS = ("pick_place", "push", "pull", "move_to_aim")
 
 
 class Config(BaseModel):
@@ -55,10 +50,8 @@ class Config(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    seed: int = Field(0, description="seed of PPO, SFT, env sampling and head fitting")
+    seed: int = Field(0, description="seed of PPO, env sampling and head fitting")
     reward: Literal["wm", "rule", "embedding", "proxy"] = Field("wm", description="reward module (see stages.rl.rewards)")
-    tasks: list[Literal["pick_place", "push", "pull", "move_to_aim"]] = Field(
-        list(TASKS), min_length=1, description="tasks the one policy trains on (multi-task when several)")
     # reward `wm`
     alpha: float = Field(5.0, ge=0, description="weight of the sparse done-head reward")
     beta: float = Field(0.02, ge=0, description="weight of the dense goal-similarity reward")
@@ -80,13 +73,7 @@ class Config(BaseModel):
     gamma: float = Field(0.99, gt=0, le=1)
     clip_range: float = Field(0.2, gt=0)
     ent_coef: float = Field(0.0, ge=0)
-    log_std_init: float = Field(-1.0, description="initial log std of the Gaussian policy")
     snapshots: int = Field(4, ge=0, description="policy checkpoints spread over training (success vs time)")
-    # SFT
-    sft_epochs: int = Field(20, ge=0, description="behaviour-cloning epochs before PPO (0 = none)")
-    sft_lr: float = Field(1e-3, gt=0)
-    sft_batch_size: int = Field(256, ge=1)
-    sft_kinds: list[str] = Field(["optimal"], min_length=1, description="trajectory kinds used as demonstrations")
     # learned rewards and diagnostics
     head_episodes: int = Field(200, ge=1, description="IND training episodes the embedding / proxy heads are fitted on")
     head_steps: int = Field(1000, ge=1, description="optimisation steps of each head")
@@ -96,20 +83,13 @@ class Config(BaseModel):
 
     @model_validator(mode="after")
     def _return_scales(self) -> "Config":
-        # DESIGN.md §4: 300 dense steps outweighed one sparse +10 in the authors' setup.
+        # in the paper authors' released setup 300 dense steps outweighed one sparse +10 (docs/rl.md, "Return scales")
         if self.reward == "wm" and self.dense == "similarity" and self.alpha <= self.beta * self.max_episode_steps:
             raise ValueError(
                 f"alpha ({self.alpha}) <= beta * max_episode_steps ({self.beta * self.max_episode_steps:g}): "
                 "an episode that lingers near the goal would earn more dense reward than one that finishes; "
                 "raise alpha, lower beta, or use dense: potential")
         return self
-
-
-def load_policy(path: str | Path, device: str = "cpu"):
-    """A trained policy (``policy.zip``, ``sft_policy.zip`` or a snapshot) as an SB3 PPO model."""
-    from stable_baselines3 import PPO
-
-    return PPO.load(str(path), device=device)
 
 
 def run(ctx) -> None:
@@ -124,4 +104,4 @@ def run(ctx) -> None:
     ctx.write_metrics(metrics)
 
 
-__all__ = ["Config", "run", "load_policy", "REWARDS", "TASKS"]
+__all__ = ["Config", "run", "REWARDS"]

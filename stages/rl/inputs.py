@@ -8,9 +8,10 @@ import numpy as np
 import torch
 
 from stages.common.frame_skip import compose_actions, frame_indices, per_step
+from stages.common.proprio import proprio_from_state
 from stages.goals.environments import Environment, list_environments
-from stages.rl.observation import ObservationFn
 from stages.rl.wm_env import Start
+from stages.sft.observation import ObservationFn
 
 
 @dataclass
@@ -26,16 +27,28 @@ class RLInputs:
     wm: object  # the action world model (stages.train_wm.rollout.WorldModel)
     obs_fn: ObservationFn
     device: str
+    sft_policy: object  # stages.sft.policy.TaskPolicy, what PPO starts from
+    sft_info: dict  # the sft artifact's policy.json (tasks, frame_skip, policy_kwargs)
 
     @classmethod
     def load(cls, ctx, cfg) -> "RLInputs":
         from stages.collect.dataset import Dataset
         from stages.goals import load_goals
+        from stages.sft import read_policy_json
+        from stages.sft.policy import POLICY_FILE, load_policy
         from stages.tokenize.store import TokenStore
         from stages.tokenize.tokenizer import load_tokenizer
         from stages.train_wm.rollout import TEXT_EMBEDDINGS, load_world_model
 
         wm_dir = ctx.input("train_wm")
+        wm = load_world_model(wm_dir, kind="action", device=ctx.device)
+        sft_info = read_policy_json(ctx.input("sft"))
+        if int(sft_info["frame_skip"]) != wm.spec.frame_skip:
+            raise ValueError(f"sft.frame_skip ({sft_info['frame_skip']}) != train_wm.frame_skip ({wm.spec.frame_skip}): "
+                             "a policy step must mean the same number of control steps in both; set them equal")
+        if "proprio" in sft_info["observation"] and wm.proprio_head is None:
+            raise ValueError(f"the SFT policy observes proprioception but the world model in {wm_dir} has no "
+                             "proprioception head (proprio_head.pt); rerun train_wm")
         tok = load_tokenizer(ctx.input("tokenize"), ctx.device)
         ds = Dataset(ctx.input("collect"))
         goals = load_goals(ctx.input("goals"))
@@ -48,8 +61,13 @@ class RLInputs:
         return cls(tok=tok, store=TokenStore(ctx.input("tokenize")), dataset=ds,
                    meta={m.episode_id: m for m in ds.episodes},
                    split=json.loads((wm_dir / "split.json").read_text()), envs=envs, goal_index=goal_index,
-                   goals=goals, wm=load_world_model(wm_dir, kind="action", device=ctx.device),
-                   obs_fn=ObservationFn(tok, text), device=ctx.device)
+                   goals=goals, wm=wm, obs_fn=ObservationFn(tok, text), device=ctx.device,
+                   sft_policy=load_policy(ctx.input("sft") / POLICY_FILE, ctx.device), sft_info=sft_info)
+
+    @property
+    def tasks(self) -> list[str]:
+        """The tasks of the SFT policy, which PPO fine-tunes on."""
+        return list(self.sft_info["tasks"])
 
     @property
     def frame_skip(self) -> int:
@@ -63,10 +81,15 @@ class RLInputs:
 
     def steps(self, episode_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """World-model steps of an episode: tokens (T'+1, h, w), composed actions (T', 7), rule reward (T',)."""
-        ep = self.dataset.load(episode_id)
-        n, k = len(ep.action), self.frame_skip
-        return (self.tokens(episode_id), compose_actions(ep.action, k),
-                per_step(np.asarray(ep.reward, dtype=np.float32), n, k))
+        ep = self.dataset.load_states(episode_id)
+        n, k = len(ep["action"]), self.frame_skip
+        return (self.tokens(episode_id), compose_actions(ep["action"], k),
+                per_step(np.asarray(ep["reward"], dtype=np.float32), n, k))
+
+    def first_proprio(self, episode_id: str) -> np.ndarray:
+        """(10,) proprioception of an episode's first frame."""
+        ep = self.dataset.load_states(episode_id)
+        return proprio_from_state(ep["ee_pose"][:1], ep["qpos"][:1])[0]
 
     def training_envs(self, tasks: list[str]) -> list[Environment]:
         train = set(self.split["train"])
@@ -78,7 +101,7 @@ class RLInputs:
     def starts(self, envs: list[Environment]) -> list[Start]:
         """Initial states of training episodes of ``envs`` (first frames)."""
         train = set(self.split["train"])
-        return [Start(self.goal_index[e.env_id], e.instruction, self.tokens(i)[0])
+        return [Start(self.goal_index[e.env_id], e.instruction, self.tokens(i)[0], self.first_proprio(i))
                 for e in envs for i in e.episodes if i in train]
 
     def goal_frames(self) -> tuple[torch.Tensor, torch.Tensor]:

@@ -18,7 +18,9 @@ from dataclasses import dataclass
 import gymnasium as gym
 import numpy as np
 
-from stages.rl.observation import ObservationFn, index_obs
+from stages.common.action_space import executed
+from stages.common.proprio import proprio_from_sim_state
+from stages.sft.observation import ObservationFn, index_obs
 
 
 @dataclass(frozen=True)
@@ -34,7 +36,7 @@ class SimSpec:
 
 
 class SimTaskEnv(gym.Env):
-    """ManiSkill task env -> {codes, instruction} observations, rule reward, success = terminated."""
+    """ManiSkill task env -> {codes, proprio, instruction} observations, rule reward, success = terminated."""
 
     metadata = {"render_modes": []}
 
@@ -73,7 +75,8 @@ class SimTaskEnv(gym.Env):
         return env
 
     def _observe(self, raw: dict) -> dict[str, np.ndarray]:
-        obs = self.obs_fn.from_views(raw["third"][None], raw["wrist"][None], [self.instruction])
+        obs = self.obs_fn.from_views(raw["third"][None], raw["wrist"][None], proprio_from_sim_state(raw["state"]),
+                                     [self.instruction])
         return index_obs(obs, 0)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -93,7 +96,7 @@ class SimTaskEnv(gym.Env):
         a = np.asarray(action, dtype=np.float32).reshape(-1)
         if a.shape != (7,) or not np.isfinite(a).all():
             raise ValueError(f"expected a finite (7,) action, got {a!r}")
-        a = np.clip(a, -1.0, 1.0)
+        a = executed(a)
         for r in range(self.action_repeat):
             if r < self.action_repeat - 1 and not self.keep_frames:
                 if not self._unobserved_control_step(a):

@@ -1,4 +1,4 @@
-"""The rl stage's work, in order: fit learned rewards, diagnose rewards, SFT, PPO, save."""
+"""The rl stage's work, in order: fit learned rewards, diagnose rewards, PPO from the SFT policy, save."""
 from __future__ import annotations
 
 import time
@@ -7,11 +7,12 @@ import numpy as np
 import torch
 
 from stages.rl.diagnostics import binned_curve, plot_curves, progress_correlation
-from stages.rl.policy import flat_params, make_ppo, sft
+from stages.rl.ppo import make_ppo
 from stages.rl.rewards import EmbeddingReward, GoalDistance, ProxyReward, WMReward
 from stages.rl.rewards.fit import FrameSet, fit_embedding_head, fit_proxy, frame_set
 from stages.rl.training import TrainingLog, plot_training
 from stages.rl.wm_env import WorldModelVecEnv
+from stages.sft.policy import flat_params
 
 
 def _episode_tuples(inp, ids: list[str]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -24,16 +25,17 @@ def _frames(inp, fs: FrameSet) -> tuple[torch.Tensor, torch.Tensor]:
 
 def train(ctx, cfg, inp) -> dict:
     t_stage = time.perf_counter()
-    metrics: dict = {"reward": cfg.reward, "tasks": list(cfg.tasks), "frame_skip": inp.frame_skip}
-    envs = inp.training_envs(cfg.tasks)
+    tasks = inp.tasks
+    metrics: dict = {"reward": cfg.reward, "tasks": tasks, "frame_skip": inp.frame_skip}
+    envs = inp.training_envs(tasks)
     metrics["train_environments"] = len(envs)
-    ctx.log.info("rl: reward %s, %d training environments of tasks %s", cfg.reward, len(envs), cfg.tasks)
+    ctx.log.info("rl: reward %s, %d training environments of tasks %s", cfg.reward, len(envs), tasks)
 
     # ---- learned rewards (fitted to the rule reward of IND training episodes) ----------------------
     wanted = {"wm", "rule", "embedding", "proxy"} if cfg.diagnostics == "all" else {cfg.reward}
     heads = {}
     if wanted & {"embedding", "proxy"}:
-        fit_ids = inp.episodes_for(inp.split["train"], cfg.tasks, False, cfg.head_episodes, cfg.seed)
+        fit_ids = inp.episodes_for(inp.split["train"], tasks, False, cfg.head_episodes, cfg.seed)
         with ctx.progress(len(fit_ids), "rl: hidden states for reward heads", unit="ep") as bar:
             fs_fit = frame_set(inp.wm, _episode_tuples(inp, fit_ids), inp.device, bar)
         if "embedding" in wanted:
@@ -65,20 +67,9 @@ def train(ctx, cfg, inp) -> dict:
                                max_steps=cfg.max_episode_steps, theta_done=cfg.theta_done, seed=cfg.seed,
                                device=inp.device)
 
-    # ---- SFT on planner demonstrations, then PPO ---------------------------------------------------
-    model = make_ppo(env, cfg, cfg.seed, inp.device)
-    demo_ids = inp.episodes_for(inp.split["train"], cfg.tasks, True, 10**9, cfg.seed, kinds=list(cfg.sft_kinds))
-    metrics["sft/demonstrations"] = len(demo_ids)
-    if cfg.sft_epochs and demo_ids:
-        obs, actions = _demos(inp, demo_ids)
-        t0 = time.perf_counter()
-        with ctx.progress(cfg.sft_epochs, "rl: SFT", unit="epoch") as bar:
-            losses = sft(model, obs, actions, epochs=cfg.sft_epochs, lr=cfg.sft_lr, batch_size=cfg.sft_batch_size,
-                         seed=cfg.seed, progress=bar)
-        metrics.update({"sft/pairs": int(len(actions)), "sft/first_loss": losses[0], "sft/final_loss": losses[-1],
-                        "sft/seconds": time.perf_counter() - t0})
-    model.save(ctx.out / "sft_policy.zip")
-    before = flat_params(model)
+    # ---- PPO from the SFT policy -------------------------------------------------------------------
+    model = make_ppo(env, cfg, inp.sft_policy, inp.sft_info, inp.device)
+    before = flat_params(model.policy)
 
     log = TrainingLog(ctx.out, cfg.total_timesteps, cfg.snapshots)
     t0 = time.perf_counter()
@@ -89,7 +80,7 @@ def train(ctx, cfg, inp) -> dict:
     model.save(ctx.out / "policy.zip")
     log.write()
     env.close()
-    after = flat_params(model)
+    after = flat_params(model.policy)
     plot_training(log.episodes, ctx.out / "training.png", f"PPO, reward={cfg.reward}")
     metrics.update({f"ppo/{k}": v for k, v in log.summary().items()})
     metrics.update({
@@ -104,22 +95,11 @@ def train(ctx, cfg, inp) -> dict:
     return metrics
 
 
-def _demos(inp, ids: list[str]) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Observation / action pairs of demonstration episodes (frames 0..T-1 and their actions)."""
-    obs_parts, acts = [], []
-    for i in ids:
-        tokens, actions, _ = inp.steps(i)
-        obs_parts.append(inp.obs_fn.from_tokens(tokens[:-1], [inp.meta[i].instruction] * len(actions)))
-        acts.append(actions)
-    obs = {k: np.concatenate([o[k] for o in obs_parts]) for k in obs_parts[0]}
-    return obs, np.concatenate(acts)
-
-
 def _diagnose(ctx, cfg, inp, wanted: set[str], heads: dict, distance: GoalDistance) -> dict:
     out: dict = {}
     curves: dict[str, dict[str, np.ndarray]] = {}
     for split, ids in (("ind", inp.split["heldout"]), ("ood", inp.split["ood"])):
-        pick = inp.episodes_for(ids, cfg.tasks, True, cfg.diagnostics_episodes, cfg.seed)
+        pick = inp.episodes_for(ids, inp.tasks, True, cfg.diagnostics_episodes, cfg.seed)
         if not pick:
             ctx.log.warning("rl: no successful held-out %s episodes for reward diagnostics", split)
             continue

@@ -1,10 +1,12 @@
 """The action world model as an RL environment: a batched stable-baselines3 ``VecEnv`` and a
 single gymnasium ``Env`` on top of it.
 
-reset: each env samples a training environment (task x scene) and one of its initial frames from
-the collected data. step(action): the action WM predicts the next frame (KV-cached, batched), the
-reward module scores it, ``terminated`` = done head >= theta_done, ``truncated`` = step cap.
-Observations come from ``ObservationFn`` (the same function the simulator env uses).
+reset: each env samples a training environment (task x scene) and one of its initial frames (and
+the robot's proprioception there) from the collected data. step(action): the action is executed
+as in the simulator (``stages.common.action_space``), the action WM predicts the next frame
+(KV-cached, batched) and its proprioception head the robot's next state, the reward module scores
+the frame, ``terminated`` = done head >= theta_done, ``truncated`` = step cap. Observations come
+from ``ObservationFn`` (the same function the simulator env uses).
 """
 from __future__ import annotations
 
@@ -16,8 +18,10 @@ import numpy as np
 import torch
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
-from stages.rl.observation import ObservationFn, index_obs
+from stages.common.action_space import executed
+from stages.common.proprio import PROPRIO_DIM
 from stages.rl.rewards.base import RewardModule, StepBatch
+from stages.sft.observation import ObservationFn, index_obs
 
 
 @dataclass
@@ -27,6 +31,7 @@ class Start:
     env_index: int  # row of the environment in the goals artifact
     instruction: str
     tokens: np.ndarray  # (h, w) the initial frame
+    proprio: np.ndarray  # (10,) the robot's proprioception in it
 
 
 def check_actions(actions: np.ndarray, n: int) -> np.ndarray:
@@ -58,6 +63,7 @@ class WorldModelVecEnv(VecEnv):
         self.rng = np.random.default_rng(seed)
         self.current: list[Start] = [self.starts[0]] * num_envs
         self.t = np.zeros(num_envs, dtype=np.int64)
+        self.proprio = torch.zeros(num_envs, PROPRIO_DIM, device=device)  # (B, 10) each env's robot state
         self._actions: np.ndarray | None = None
         self.stats = {"steps": 0, "episodes": 0, "terminated": 0, "truncated": 0}
 
@@ -74,11 +80,16 @@ class WorldModelVecEnv(VecEnv):
         return batch
 
     def _obs(self, tokens: torch.Tensor) -> dict[str, np.ndarray]:
-        return self.obs_fn.from_tokens(tokens.cpu(), [s.instruction for s in self.current])
+        return self.obs_fn.from_tokens(tokens.cpu(), self.proprio.cpu().numpy(), [s.instruction for s in self.current])
+
+    def _start_proprio(self, rows: np.ndarray) -> None:
+        self.proprio[torch.as_tensor(rows)] = torch.as_tensor(
+            np.stack([self.current[r].proprio for r in rows]), dtype=torch.float32, device=self.proprio.device)
 
     def _restart(self, rows: np.ndarray, tokens: torch.Tensor, done: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
         """Put new initial frames into ``rows``; returns the updated frame tokens (B, h, w)."""
         self._sample_starts(rows)
+        self._start_proprio(rows)
         new = torch.as_tensor(np.stack([self.current[r].tokens for r in rows]).astype(np.int64), device=self.device)
         self.roll.reset(new, env_ids=torch.as_tensor(rows))
         tokens = tokens.clone()
@@ -90,6 +101,7 @@ class WorldModelVecEnv(VecEnv):
     def reset(self) -> dict[str, np.ndarray]:
         rows = np.arange(self.num_envs)
         self._sample_starts(rows)
+        self._start_proprio(rows)
         tokens = torch.as_tensor(np.stack([s.tokens for s in self.current]).astype(np.int64), device=self.device)
         self.roll.reset(tokens)
         zeros = torch.zeros(self.num_envs)
@@ -98,13 +110,16 @@ class WorldModelVecEnv(VecEnv):
         return self._obs(tokens)
 
     def step_async(self, actions: np.ndarray) -> None:
-        self._actions = check_actions(actions, self.num_envs)
+        self._actions = executed(check_actions(actions, self.num_envs))
 
     def step_wait(self):
         actions, self._actions = self._actions, None
         if actions is None:
             raise RuntimeError("step_wait() called before step_async()")
-        out = self.roll.step(torch.as_tensor(actions, device=self.device))
+        act = torch.as_tensor(actions, device=self.device)
+        out = self.roll.step(act)
+        if getattr(self.wm, "proprio_head", None) is not None:
+            self.proprio = self.wm.next_proprio(self.proprio, act, out.tokens)
         batch = self._batch(out.tokens, out.done_prob, out.hidden)
         rewards = np.asarray(self.reward(batch), dtype=np.float32)
         self.t += 1

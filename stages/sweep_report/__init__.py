@@ -3,8 +3,8 @@ layouts, success vs training wall time, training curves, reward diagnostics, rol
 actions. Hooked into ``pipeline.yaml`` as ``sweeps.<name>.report``; it is not a stage, so changing it
 changes no stage's cache key (a rerun of ``pipeline sweep`` rewrites the report from cached points).
 
-SFT is trained inside the rl stage from the rl seed and tasks only, so points that differ only in
-the reward module share it: its episodes are counted once per (seed, tasks), not once per point.
+SFT is its own stage (stages/sft), so points that differ only in the reward module share one SFT
+policy: its episodes are counted once per sft artifact, not once per point.
 """
 from __future__ import annotations
 

@@ -20,11 +20,12 @@ class PointRun:
     snapshots: list[dict] = field(default_factory=list)  # [{timesteps, wall_seconds, ...}] of PPO
     training: list[dict] = field(default_factory=list)  # PPO episodes [{t, wall, return, length, terminated}]
     seconds: dict[str, float] = field(default_factory=dict)  # stage -> wall seconds of its run
+    sft_dir: Path | None = None  # the sft artifact the point's PPO started from
 
     @property
     def sft_key(self) -> tuple:
-        """SFT depends on the rl seed and tasks, not on the reward: points sharing this key share SFT."""
-        return (json.dumps(self.seed), tuple(self.tasks))
+        """Points sharing one sft artifact share the SFT policy (it does not depend on the reward)."""
+        return (str(self.sft_dir),) if self.sft_dir is not None else (json.dumps(self.seed), tuple(self.tasks))
 
 
 def _json(path: Path, default: Any) -> Any:
@@ -57,7 +58,7 @@ def gather(point: dict) -> PointRun | None:
                    seed=config.get("seed", point["values"].get("rl.seed")),
                    tasks=list(metrics.get("tasks", config.get("tasks", []))), rl_metrics=metrics, rl_dir=rl_dir,
                    snapshots=_json(rl_dir / "snapshots" / "index.json", []),
-                   training=_json(rl_dir / "episodes.json", []))
+                   training=_json(rl_dir / "episodes.json", []), sft_dir=arts.get("sft"))
     run.seconds["rl"] = float(manifest.get("duration_s", float("nan")))
     run.eval_dir = _committed(arts.get("evaluate"))
     if run.eval_dir is not None:

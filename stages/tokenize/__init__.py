@@ -50,6 +50,8 @@ class Config(BaseModel):
     channels: tuple[int, ...] = Field((32, 64, 128), description="encoder width after each 2x downsampling; len = number of halvings")
     res_blocks: int = Field(1, ge=0, description="residual blocks per resolution level in encoder and decoder")
     temperature: float = Field(1.0, gt=0, description="LFQ softmax temperature for the entropy loss")
+    per_view: bool = Field(True, description="one token grid per view (stacked vertically, 2x the tokens) "
+                           "instead of one grid for both views stacked as channels (docs/tokenizer.md)")
     steps: int = Field(1500, ge=1, description="optimiser steps")
     batch_size: int = Field(32, ge=1, description="observations (frame pairs) per step")
     lr: float = Field(5e-4, gt=0, description="peak AdamW learning rate")
@@ -68,7 +70,8 @@ class Config(BaseModel):
     encode_batch: int = Field(256, ge=1, description="frames per batch when tokenizing every episode")
 
     def spec(self) -> ModelSpec:
-        return ModelSpec(image_size=self.image_size, bits=self.bits, channels=tuple(self.channels), res_blocks=self.res_blocks, temperature=self.temperature)
+        return ModelSpec(image_size=self.image_size, bits=self.bits, channels=tuple(self.channels), res_blocks=self.res_blocks, temperature=self.temperature,
+                         per_view=self.per_view)
 
     def settings(self) -> training.TrainSettings:
         return training.TrainSettings(

@@ -1,8 +1,15 @@
 """The tokenizer network: conv encoder -> LFQ -> conv decoder over a two-view observation.
 
 An observation is the third-person and wrist RGB frames stacked as channels, (B, 6, S, S) in
-[-1, 1]; ``len(channels)`` stride-2 downsamplings give a (S / 2^L)^2 token grid (64 px, 3 levels:
-8 x 8 = 64 tokens per time step). See docs/tokenizer.md for why the views are stacked.
+[-1, 1]; ``len(channels)`` stride-2 downsamplings give an s x s grid with s = S / 2^L (64 px, 3
+levels: 8 x 8). Two layouts (``ModelSpec.per_view``):
+
+* stacked (``per_view=False``): one encoder pass over the 6-channel stack, ONE s x s grid for both
+  views (64 tokens per time step at 64 px);
+* per view (``per_view=True``): the same encoder and decoder (shared weights, 3 channels) run on each
+  view, giving one s x s grid per view; the frame's grid is the two stacked vertically, third view
+  on top: (2s, s), 128 tokens per time step. Each token then describes one 8 x 8 pixel patch of one
+  view, so an object's position is not shared with the other camera's content (docs/tokenizer.md).
 """
 from __future__ import annotations
 
@@ -28,11 +35,17 @@ class ModelSpec:
     channels: tuple[int, ...] = (32, 64, 128)  # width after each stride-2 downsampling (encoder order)
     res_blocks: int = 1  # residual blocks per resolution level
     temperature: float = 1.0  # LFQ softmax temperature
+    per_view: bool = False  # one grid per view, stacked vertically (module docstring)
 
     @property
     def grid(self) -> tuple[int, int]:
         side = self.image_size // 2 ** len(self.channels)
-        return side, side
+        return (len(VIEWS) * side, side) if self.per_view else (side, side)
+
+    @property
+    def in_channels(self) -> int:
+        """Channels one encoder pass sees: one RGB view, or both stacked."""
+        return 3 if self.per_view else IN_CHANNELS
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -65,7 +78,7 @@ class Encoder(nn.Module):
     def __init__(self, spec: ModelSpec):
         super().__init__()
         c0 = spec.channels[0] // 2
-        layers: list[nn.Module] = [nn.Conv2d(IN_CHANNELS, c0, 3, padding=1)]
+        layers: list[nn.Module] = [nn.Conv2d(spec.in_channels, c0, 3, padding=1)]
         cin = c0
         for c in spec.channels:
             layers.append(nn.Conv2d(cin, c, 4, stride=2, padding=1))  # learned 2x downsampling
@@ -93,7 +106,7 @@ class Decoder(nn.Module):
             layers += [ResBlock(cin) for _ in range(spec.res_blocks)]
             # sub-pixel 2x upsampling: same FLOPs as nearest-upsample + conv, measured ~2x faster on CPU
             layers += [nn.Conv2d(cin, 4 * cout, 3, padding=1), nn.PixelShuffle(2)]
-        layers += [_norm(widths[-1]), nn.SiLU(), nn.Conv2d(widths[-1], IN_CHANNELS, 3, padding=1)]
+        layers += [_norm(widths[-1]), nn.SiLU(), nn.Conv2d(widths[-1], spec.in_channels, 3, padding=1)]
         self.net = nn.Sequential(*layers)
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:
@@ -112,18 +125,37 @@ class TokenizerNet(nn.Module):
         self.quantizer = LFQ(spec.bits, spec.temperature)
         self.decoder = Decoder(spec)
 
+    def latents(self, obs: torch.Tensor) -> torch.Tensor:
+        """Continuous latents (B, bits, h, w) on the frame's grid for observations (B, 6, S, S)."""
+        if not self.spec.per_view:
+            return self.encoder(obs)
+        b, v = obs.shape[0], len(VIEWS)
+        z = self.encoder(obs.reshape(b * v, 3, *obs.shape[-2:]))  # (B*V, bits, s, s)
+        _, c, s, _ = z.shape
+        return z.reshape(b, v, c, s, s).permute(0, 2, 1, 3, 4).reshape(b, c, v * s, s)  # (B, bits, V*s, s)
+
+    def decode_raw(self, codes: torch.Tensor) -> torch.Tensor:
+        """Reconstruction (B, 6, S, S), unclamped, from codes (B, bits, h, w) on the frame's grid."""
+        if not self.spec.per_view:
+            return self.decoder(codes)
+        b, c, vs, s = codes.shape
+        v = len(VIEWS)
+        per = codes.reshape(b, c, v, vs // v, s).permute(0, 2, 1, 3, 4).reshape(b * v, c, vs // v, s)  # (B*V, bits, s, s)
+        out = self.decoder(per)  # (B*V, 3, S, S)
+        return out.reshape(b, v * out.shape[1], *out.shape[-2:])
+
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, LFQOutput]:
         """(reconstruction (B, 6, S, S), LFQ output) for observations (B, 6, S, S) in [-1, 1]."""
-        q = self.quantizer(self.encoder(obs))
-        return self.decoder(q.quantized), q
+        q = self.quantizer(self.latents(obs))
+        return self.decode_raw(q.quantized), q
 
     def encode(self, obs: torch.Tensor) -> torch.Tensor:
         """Token ids (B, h, w) int64 for observations (B, 6, S, S) in [-1, 1]."""
-        return self.quantizer.quantize(self.encoder(obs))[1]
+        return self.quantizer.quantize(self.latents(obs))[1]
 
     def decode_codes(self, codes: torch.Tensor) -> torch.Tensor:
         """Observations (B, 6, S, S) in [-1, 1] (clamped) from +-1 codes (B, bits, h, w)."""
-        return self.decoder(codes).clamp(-1, 1)
+        return self.decode_raw(codes).clamp(-1, 1)
 
 
 def to_obs(third: torch.Tensor, wrist: torch.Tensor, image_size: int) -> torch.Tensor:

@@ -124,7 +124,7 @@ def reconstruct(net: TokenizerNet, third: np.ndarray, wrist: np.ndarray, device:
     outs_t, outs_w, toks = [], [], []
     for i in range(0, len(third), batch_size):
         obs = to_obs(torch.from_numpy(third[i : i + batch_size]).to(device), torch.from_numpy(wrist[i : i + batch_size]).to(device), net.spec.image_size)
-        q, tok = net.quantizer.quantize(net.encoder(obs))
+        q, tok = net.quantizer.quantize(net.latents(obs))
         rt, rw = from_obs(net.decode_codes(q))
         outs_t.append(rt.cpu()), outs_w.append(rw.cpu()), toks.append(tok.cpu())
     return torch.cat(outs_t), torch.cat(outs_w), torch.cat(toks)

@@ -11,13 +11,16 @@ Outputs (in the artifact directory):
     action_wm.pt, text_wm.pt   checkpoints: architecture spec, weights, action clip range and
                                normalisation (buffers), decoding settings; read with
                                ``stages.train_wm.rollout.load_world_model(dir, kind)``
+    proprio_head.pt            the action WM's proprioception head (``stages.train_wm.proprio``),
+                               loaded with the action WM
     text_embeddings.json       {instruction: 384-d MiniLM embedding} of every instruction
     split.json                 train / held-out IND / OOD episode ids
     metrics.json               per model: loss history, wall time; action WM open-loop PSNR / SSIM /
                                LPIPS at horizons 1, 5, 15 on held-out IND and OOD next to the
                                copy-last-frame baseline and the tokenizer ceiling, controllability
                                (true vs shuffled actions), extreme-action rollouts; done-head AUROC,
-                               precision / recall at ``done_threshold``, Brier, ECE for both models
+                               precision / recall at ``done_threshold``, Brier, ECE for both models;
+                               proprioception head: TCP error (cm) at horizons 1, 5, 15 vs copy-last
     frames.png                 real vs predicted frame strips (held-out IND and OOD)
 
 Key includes:
@@ -81,6 +84,9 @@ class Config(BaseModel):
     eval_starts: int = Field(4, ge=1, description="open-loop start frames per evaluation episode")
     done_threshold: float = Field(0.5, gt=0, lt=1, description="theta for done precision / recall")
     extreme_scale: float = Field(10.0, gt=1, description="extreme-action test: multiple of the data's action bound")
+    proprio_steps: int = Field(3000, ge=1, description="optimisation steps of the proprioception head")
+    proprio_batch_size: int = Field(256, ge=1, description="transitions per proprioception-head step")
+    proprio_lr: float = Field(1e-3, gt=0, description="AdamW peak learning rate of the proprioception head")
 
 
 def _spec(cfg: Config, kind: str, vocab: int, grid: tuple[int, int]) -> WMSpec:
@@ -146,13 +152,43 @@ def run(ctx) -> None:
         metrics[f"{kind}_wm/final_done_loss"] = result["final"]["done"]
         metrics[f"{kind}_wm/history"] = result["history"]
 
+    tok = load_tokenizer(tok_dir, ctx.device)
+    metrics.update(_proprio_head(ctx, cfg, tok, train_eps, held_eps, ood_eps))
+
     if cpu:
         torch.set_num_threads(1)
     t0 = time.perf_counter()
-    metrics.update(_evaluate(ctx, cfg, models, held_eps, ood_eps, text_emb, load_tokenizer(tok_dir, ctx.device),
-                             Dataset(collect_dir)))
+    metrics.update(_evaluate(ctx, cfg, models, held_eps, ood_eps, text_emb, tok, Dataset(collect_dir)))
     metrics["eval_seconds"] = time.perf_counter() - t0
     ctx.write_metrics(metrics)
+
+
+def _proprio_head(ctx, cfg: Config, tok, train_eps: list, held_eps: list, ood_eps: list) -> dict:
+    """Train the action WM's proprioception head, save it, and measure its open-loop TCP error."""
+    from stages.train_wm.proprio import CHECKPOINT, ProprioHead, horizon_errors, save_head, train_proprio_head, transitions
+
+    def codes_fn(tokens: np.ndarray) -> torch.Tensor:  # (n, N) token ids -> (n, bits, h, w) +-1 codes
+        return tok.codes(torch.from_numpy(tokens.reshape(len(tokens), *tok.grid)))
+
+    head = ProprioHead(tok.bits, tok.grid).to(ctx.device)
+    data = transitions(train_eps, codes_fn)
+    with ctx.progress(cfg.proprio_steps, "train_wm: proprioception head", unit="step") as bar:
+        result = train_proprio_head(head, data, steps=cfg.proprio_steps, batch_size=cfg.proprio_batch_size,
+                                    lr=cfg.proprio_lr, seed=cfg.seed, device=ctx.device, progress=bar)
+    save_head(head.cpu(), ctx.out / CHECKPOINT)
+    head.to(ctx.device)
+    out = {"proprio/train_seconds": result["seconds"], "proprio/final_loss": result["final"],
+           "proprio/transitions": int(len(data[0])), "proprio/history": result["history"]}
+    rng = np.random.default_rng(cfg.seed + 5)
+    for split, eps in (("heldout_ind", held_eps), ("ood", ood_eps)):
+        eps = [eps[i] for i in sorted(rng.choice(len(eps), size=min(cfg.eval_episodes, len(eps)), replace=False))] if eps else []
+        starts = rollout_starts(eps, max(HORIZONS), cfg.eval_starts, rng)
+        if starts:
+            for k, v in horizon_errors(head, eps, codes_fn, HORIZONS, starts, ctx.device).items():
+                out[f"proprio/{split}/{k}"] = v
+    ctx.log.info("train_wm: proprioception head TCP error (cm) %s",
+                 {k: round(v, 2) for k, v in out.items() if "tcp_error_cm" in k and "ci95" not in k and v is not None})
+    return out
 
 
 def _evaluate(ctx, cfg: Config, models: dict, held_eps: list, ood_eps: list, text_emb: dict, tok, ds) -> dict:

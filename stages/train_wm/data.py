@@ -25,6 +25,7 @@ class Episode:
     tokens: np.ndarray  # (T+1, N) int64
     actions: np.ndarray  # (T, 7) float32
     done: np.ndarray  # (T+1,) float32 in {0, 1}
+    proprio: np.ndarray  # (T+1, 10) float32 robot proprioception (stages.common.proprio)
 
     @property
     def length(self) -> int:
@@ -32,9 +33,11 @@ class Episode:
 
 
 def load_episodes(collect_dir: Path, tokenize_dir: Path, progress=None, frame_skip: int = 1) -> list[Episode]:
-    """Every collected episode with its precomputed tokens, composed actions and done labels."""
+    """Every collected episode with its precomputed tokens, composed actions, done labels and
+    proprioception (states read without decoding any image)."""
     from stages.collect.dataset import Dataset
     from stages.common.frame_skip import compose_actions, frame_indices
+    from stages.common.proprio import proprio_from_state
     from stages.tokenize.store import TokenStore
 
     ds, store = Dataset(collect_dir), TokenStore(tokenize_dir)
@@ -42,16 +45,17 @@ def load_episodes(collect_dir: Path, tokenize_dir: Path, progress=None, frame_sk
     for meta in ds.episodes:
         if meta.episode_id not in store:
             raise KeyError(f"episode {meta.episode_id!r} of {collect_dir} has no tokens in {tokenize_dir}")
-        ep = ds.load(meta.episode_id)
+        ep = ds.load_states(meta.episode_id)
         tokens = np.asarray(store.episode(meta.episode_id), dtype=np.int64)
         tokens = tokens.reshape(len(tokens), -1)
-        actions = np.asarray(ep.action, dtype=np.float32)
+        actions = np.asarray(ep["action"], dtype=np.float32)
         if len(tokens) != len(actions) + 1:
             raise ValueError(f"episode {meta.episode_id!r}: {len(tokens)} token frames for {len(actions)} actions "
                              f"(expected T+1 frames for T actions)")
         keep = frame_indices(len(actions), frame_skip)
         out.append(Episode(meta.episode_id, meta.instruction, meta.split, tokens[keep],
-                           compose_actions(actions, frame_skip), np.asarray(ep.success, dtype=np.float32)[keep]))
+                           compose_actions(actions, frame_skip), np.asarray(ep["success"], dtype=np.float32)[keep],
+                           proprio_from_state(ep["ee_pose"][keep], ep["qpos"][keep])))
         if progress is not None:
             progress.update(1)
     return out

@@ -7,6 +7,7 @@ roll.reset(tokens0)                  # (B, h, w) frame tokens; text WM: roll.res
 out = roll.step(actions)             # (B, 7) -> out.tokens (B, h, w), out.done_prob (B,), out.hidden (B, D)
 roll.reset(tokens0[:2], env_ids=torch.tensor([3, 7]))   # restart some envs only (VecEnv auto-reset)
 done = wm.done_for_sequences(tokens (B, T+1, h, w), actions (B, T, 7))   # (B, T) done prob of frames 1..T
+proprio = wm.next_proprio(proprio (B, 10), actions (B, 7), out.tokens)     # action WM: the robot's next state
 ```
 
 Context window policy: the temporal KV cache keeps the last ``spec.window`` clean frames (a ring
@@ -67,12 +68,23 @@ class WorldModel:
     """A trained world model ready for rollouts, with its settings for decoding."""
 
     def __init__(self, net: WorldModelNet, decode_steps: int = 2, temperature: float = 0.0,
-                 text_embeddings: dict[str, list[float]] | None = None):
+                 text_embeddings: dict[str, list[float]] | None = None, proprio_head=None):
         if decode_steps < 1:
             raise ValueError(f"decode_steps must be >= 1, got {decode_steps}")
         self.net, self.decode_steps, self.temperature = net.eval(), decode_steps, temperature
         self.spec = net.spec
         self._text = text_embeddings or {}
+        self.proprio_head = proprio_head  # stages.train_wm.proprio.ProprioHead (action WM only)
+
+    @torch.no_grad()
+    def next_proprio(self, proprio: torch.Tensor, actions: torch.Tensor, next_tokens: torch.Tensor) -> torch.Tensor:
+        """The robot's next proprioception (B, 10) after ``actions`` (B, 7) led to frame ``next_tokens`` (B, h, w)."""
+        if self.proprio_head is None:
+            raise RuntimeError("this world model has no proprioception head (train_wm artifact without proprio_head.pt)")
+        from stages.tokenize.lfq import tokens_to_codes
+
+        codes = tokens_to_codes(next_tokens.to(self.device, torch.int64), self.proprio_head.bits)  # (B, bits, h, w)
+        return self.proprio_head(proprio.to(self.device, torch.float32), actions.to(self.device, torch.float32), codes)
 
     @property
     def device(self) -> torch.device:
@@ -118,10 +130,16 @@ def load_world_model(artifact_dir: str | Path, kind: str = "action", device: str
     net, extra = _load_checkpoint(path, device)
     emb_path = artifact_dir / TEXT_EMBEDDINGS
     text = json.loads(emb_path.read_text()) if emb_path.is_file() else {}
+    head = None
+    if kind == "action":
+        from stages.train_wm.proprio import CHECKPOINT as PROPRIO_CHECKPOINT, load_head
+
+        if (artifact_dir / PROPRIO_CHECKPOINT).is_file():
+            head = load_head(artifact_dir / PROPRIO_CHECKPOINT, device)
     return WorldModel(net,
                       decode_steps=decode_steps if decode_steps is not None else int(extra.get("decode_steps", 2)),
                       temperature=temperature if temperature is not None else float(extra.get("temperature", 0.0)),
-                      text_embeddings=text)
+                      text_embeddings=text, proprio_head=head)
 
 
 class Rollout:

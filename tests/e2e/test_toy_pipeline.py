@@ -1,4 +1,4 @@
-"""The real pipeline, all six stages, at toy scale, through the real CLI (one shared store).
+"""The real pipeline, all seven stages, at toy scale, through the real CLI (one shared store).
 
 Slow by nature (every stage trains or simulates for real): about ten minutes on 2 cores.
 """
@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-STAGES = ["collect", "tokenize", "train_wm", "goals", "rl", "evaluate"]
+STAGES = ["collect", "tokenize", "train_wm", "goals", "sft", "rl", "evaluate"]
 pytestmark = [pytest.mark.slow, pytest.mark.sim]
 
 
@@ -48,15 +48,20 @@ def store(tmp_path_factory) -> Path:
     return store
 
 
-def test_all_six_stages_produce_their_artifacts_and_the_report(store):
+def test_all_seven_stages_produce_their_artifacts_and_the_report(store):
     ev = artifact(store, "evaluate")
     report = (ev / "report.md").read_text()
     assert "success rate" in report.lower() and "IND" in report and "OOD" in report
     assert (ev / "report.html").is_file() and list(ev.glob("rollout_*.gif"))
     metrics = json.loads((ev / "metrics.json").read_text())
     assert any(k.startswith("success/ppo/all/ind") for k in metrics)
+    assert any(k.startswith("success/sft/all/ind") for k in metrics)
     rl = json.loads((artifact(store, "rl") / "metrics.json").read_text())
     assert rl["ppo/param_change_relative"] > 0  # PPO changed the policy
+    sft = json.loads((artifact(store, "sft") / "metrics.json").read_text())
+    assert sft["pairs/train"] > 0 and len([k for k in sft if k.startswith("val/r2/")]) == 7
+    wm = json.loads((artifact(store, "train_wm") / "metrics.json").read_text())
+    assert wm["proprio/heldout_ind/h1/tcp_error_cm/head"] is not None
     assert rl["ppo/episodes"] > 0  # episodes ended, by the done head or by truncation
 
 
@@ -89,9 +94,16 @@ def test_reward_sweep_reuses_the_shared_stages(store):
     for s in ("collect", "tokenize", "train_wm", "goals"):
         assert acts[(s, "ran")] == 0 and acts[(s, "cached")] == 1
     assert acts[("rl", "ran")] + acts[("rl", "cached")] == 12
+    # one SFT policy per seed, shared by the four reward points (seed 0's is the fixture run's)
+    assert acts[("sft", "ran")] == 2 and acts[("sft", "cached")] == 1
     out = next((store / "sweeps" / "rewards").glob("*/results.json")).parent
     table = json.loads((out / "results.json").read_text())
     assert sorted({r["rl.reward"] for r in table["rows"]}) == ["embedding", "proxy", "rule", "wm"]
     report = (out / "report.md").read_text()  # the sweep report hook, on the real rl artifacts
     assert "Cost per method" in report and "spearman_progress" in report
     assert (out / "training_curves.png").is_file() and (out / "reward_diagnostics.png").is_file()
+
+
+def test_changing_an_rl_setting_does_not_rerun_sft(store):
+    acts = actions(cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.gamma=0.98"))
+    assert acts[("sft", "cached")] == 1 and acts[("sft", "ran")] == 0 and acts[("rl", "ran")] == 1

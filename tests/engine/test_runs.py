@@ -11,10 +11,10 @@ from tests.engine.conftest import REPO
 ALL = ["collect", "tokenize", "train_wm", "goals", "rl", "evaluate"]
 
 
-def test_dag_of_the_shipped_pipeline_lists_six_stages_in_order():
+def test_dag_of_the_shipped_pipeline_lists_seven_stages_in_order():
     out = subprocess.run([sys.executable, "-m", "pipeline", "dag"], cwd=REPO, capture_output=True, text=True, check=True).stdout
     names = [line.split()[1] for line in out.splitlines() if line.strip()]
-    assert names == ALL
+    assert names == ["collect", "tokenize", "train_wm", "goals", "sft", "rl", "evaluate"]
 
 
 def test_dag_dot(ws):
@@ -175,3 +175,15 @@ def test_show_prints_manifest_and_verifies(ws):
     (art / "result.json").write_text((art / "result.json").read_text().replace("10", "11"))  # same size
     bad = ws.cli("show", "collect", "--verify", check=False)
     assert bad.returncode == 1 and "result.json: content differs" in bad.stdout
+
+
+def test_a_tied_axis_sets_several_paths_to_one_value_per_point(ws):
+    spec = ws.spec.read_text().replace("      rl.seed: [0, 1, 2]", "      goals.value+rl.seed: [0, 1]")
+    ws.spec.write_text(spec)
+    ws.cli("sweep", "rewards", "--axis", "rl.reward=[wm]")
+    assert Counter(ws.executions())["goals"] == 2 and Counter(ws.executions())["rl"] == 2  # 2 points, not 2 x 2
+    ws.reset_log()
+    ws.cli("sweep", "rewards", "--axis", "rl.reward=[wm]", "--axis", "rl.seed=[1]")  # a path names its tied axis
+    assert ws.executions() == []
+    bad = ws.cli("sweep", "rewards", "--axis", "rl.value=[1]", check=False)
+    assert bad.returncode == 2 and "not an axis of sweep" in bad.stderr

@@ -28,12 +28,20 @@ def test_wm_env_and_sim_env_observe_a_real_frame_identically():
         wm = tiny_action_wm(tok)
         goal = tok.decode(torch.as_tensor(tokens[None]))
         vec = WorldModelVecEnv(wm, tok, fn, WMReward(GoalDistance(*goal), alpha=1, beta=0.01, theta_sps=0.5),
-                               [Start(0, sim.instruction, tokens)], num_envs=1, max_steps=3, theta_done=0.99)
+                               [Start(0, sim.instruction, tokens, obs_sim["proprio"])], num_envs=1, max_steps=3,
+                               theta_done=0.99)
         obs_wm = vec.reset()
-        for k in ("codes", "instruction"):
+        assert set(obs_wm) == set(obs_sim) == {"codes", "proprio", "instruction"}
+        for k in obs_sim:
             np.testing.assert_array_equal(obs_wm[k][0], obs_sim[k])
+        # the real robot state went through stages.common.proprio: TCP ~above the table, fingers open
+        state = sim.env._obs(sim.env.unwrapped.get_obs(unflattened=True))["state"]
+        np.testing.assert_allclose(obs_sim["proprio"][:3], state[:3] * 10, rtol=1e-6)
+        assert 7.0 < obs_sim["proprio"][9] < 8.5  # gripper opening in cm
         obs_sim2, *_ = sim.step(np.zeros(7, np.float32))
-        assert obs_sim2["codes"].shape == obs_wm["codes"][0].shape
+        obs_wm2, *_ = vec.step(np.zeros((1, 7), np.float32))
+        for k in obs_sim:
+            assert obs_sim2[k].shape == obs_wm2[k][0].shape
     finally:
         sim.close()
 

@@ -4,8 +4,12 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from stages.rl.observation import ObservationFn
+from stages.common.proprio import proprio_from_state
 from stages.rl.wm_env import Start
+from stages.sft.observation import ObservationFn
+
+# the Panda's TCP pointing down above the table, fingers open (a typical first frame)
+REST_PROPRIO = proprio_from_state(np.array([[-0.1, 0.0, 0.18, 0.0, 1.0, 0.0, 0.0]]), np.array([[0.0] * 7 + [0.04, 0.04]]))[0]
 
 
 def tiny_tokenizer(image_size: int = 64):
@@ -18,13 +22,14 @@ def tiny_tokenizer(image_size: int = 64):
 
 def tiny_action_wm(tok):
     from stages.train_wm.model import WMSpec, WorldModelNet
+    from stages.train_wm.proprio import ProprioHead
     from stages.train_wm.rollout import WorldModel
 
     torch.manual_seed(0)
     net = WorldModelNet(WMSpec(kind="action", vocab_size=tok.vocab_size, grid=tok.grid, dim=16, depth=1, heads=2,
                                head_depth=1, mlp_ratio=2, window=4, control_tokens=2))
     net.set_action_stats(torch.rand(64, 7) * 2 - 1)
-    return WorldModel(net.eval(), decode_steps=2)
+    return WorldModel(net.eval(), decode_steps=2, proprio_head=ProprioHead(tok.bits, tok.grid, hidden=16, frame_dim=8).eval())
 
 
 def text_embeddings(instructions) -> dict:
@@ -47,7 +52,7 @@ def frames(n: int, size: int = 64, seed: int = 0) -> tuple[np.ndarray, np.ndarra
 def starts_for(tok, n: int = 3) -> list[Start]:
     third, wrist = frames(n)
     tokens = tok.encode(third, wrist).numpy()
-    return [Start(i % 2, ["push the cube", "pull the cube"][i % 2], tokens[i]) for i in range(n)]
+    return [Start(i % 2, ["push the cube", "pull the cube"][i % 2], tokens[i], REST_PROPRIO) for i in range(n)]
 
 
 def obs_fn(tok) -> ObservationFn:

@@ -38,7 +38,7 @@ def test_stage_writes_tokens_index_metrics_and_figure(tmp_path):
             for k in ("psnr", "ssim", "lpips"):
                 assert math.isfinite(m[f"{split}/{view}_{k}"]), (split, view, k)
     assert 0 < m["all/code_usage"] <= 1 and m["all/code_perplexity"] >= 1 and m["train_seconds"] > 0
-    assert m["all/frames"] == 7 * 7 and m["grid"] == [8, 8]
+    assert m["all/frames"] == 7 * 7 and m["grid"] == [16, 8]  # one 8 x 8 grid per view
 
     split = json.loads((out / "split.json").read_text())
     ood = {e.episode_id for e in ds.episodes if e.split == "ood"}
@@ -50,7 +50,7 @@ def test_stage_writes_tokens_index_metrics_and_figure(tmp_path):
     for e in ds.episodes:
         ep = ds.load(e.episode_id)
         tokens = store.episode(e.episode_id)
-        assert tokens.shape == (e.length + 1, 8, 8) and tokens.dtype == np.uint16
+        assert tokens.shape == (e.length + 1, 16, 8) and tokens.dtype == np.uint16
         assert np.array_equal(tokens, tok.encode(ep.third, ep.wrist).numpy())
     third, wrist = tok.decode(store.episode(ds.episodes[0].episode_id))  # uint16 memmap in, images out
     assert third.shape == wrist.shape == (ds.episodes[0].length + 1, 3, 64, 64)

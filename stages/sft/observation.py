@@ -1,10 +1,13 @@
 """What the policy observes, computed by ONE function in the world model and in the simulator.
 
-The observation is the tokenizer's +-1 latent of the frame (both views, ``(bits, h, w)``) plus the
-instruction's 384-d MiniLM embedding. In the world-model env the latent comes from the predicted
-tokens; in the simulator the rendered views are first encoded by the same tokenizer, so a policy
-trained in the world model meets the same kind of input in the simulator (docs/rl.md says why
-latents rather than decoded RGB).
+    {"codes": (B, bits, h, w)  the tokenizer's +-1 latent of the frame (both views),
+     "proprio": (B, 10)        TCP position, orientation and gripper opening (stages.common.proprio),
+     "instruction": (B, 384)}  the instruction's MiniLM embedding
+
+In the world-model env the latent comes from the predicted tokens and the proprioception from the
+action world model's proprioception head; in the simulator the rendered views are first encoded by
+the same tokenizer and the proprioception is read from the robot's state, then both go through the
+same function (docs/rl.md says why latents rather than decoded RGB, docs/sft.md why proprioception).
 """
 from __future__ import annotations
 
@@ -14,11 +17,13 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from stages.common.proprio import PROPRIO_DIM
+
 TEXT_DIM = 384
 
 
 class ObservationFn:
-    """tokens (or rendered views) + instructions -> ``{"codes": (B, bits, h, w), "instruction": (B, 384)}``."""
+    """tokens (or rendered views) + proprioception + instructions -> the observation dict above."""
 
     def __init__(self, tokenizer, text_embeddings: dict[str, Sequence[float]]):
         self.tok = tokenizer
@@ -26,6 +31,7 @@ class ObservationFn:
         h, w = tokenizer.grid
         self.space = gym.spaces.Dict({
             "codes": gym.spaces.Box(-1.0, 1.0, (tokenizer.bits, h, w), np.float32),
+            "proprio": gym.spaces.Box(-np.inf, np.inf, (PROPRIO_DIM,), np.float32),
             "instruction": gym.spaces.Box(-np.inf, np.inf, (TEXT_DIM,), np.float32),
         })
 
@@ -39,14 +45,15 @@ class ObservationFn:
                 self._text[s] = np.asarray(e, dtype=np.float32)
         return np.stack([self._text[s] for s in instructions])
 
-    def from_tokens(self, tokens, instructions: Sequence[str]) -> dict[str, np.ndarray]:
-        """tokens (B, h, w) -> observation batch."""
+    def from_tokens(self, tokens, proprio, instructions: Sequence[str]) -> dict[str, np.ndarray]:
+        """tokens (B, h, w), proprio (B, 10) -> observation batch."""
         codes = self.tok.codes(torch.as_tensor(np.asarray(tokens, dtype=np.int64))).cpu().numpy().astype(np.float32)
-        return {"codes": codes, "instruction": self.text(instructions)}
+        proprio = np.asarray(proprio, dtype=np.float32).reshape(len(codes), PROPRIO_DIM)
+        return {"codes": codes, "proprio": proprio, "instruction": self.text(instructions)}
 
-    def from_views(self, third: np.ndarray, wrist: np.ndarray, instructions: Sequence[str]) -> dict[str, np.ndarray]:
+    def from_views(self, third: np.ndarray, wrist: np.ndarray, proprio, instructions: Sequence[str]) -> dict[str, np.ndarray]:
         """Rendered views (B, H, W, 3) uint8 -> tokens via the tokenizer -> the same observation."""
-        return self.from_tokens(self.tok.encode(third, wrist).cpu(), instructions)
+        return self.from_tokens(self.tok.encode(third, wrist).cpu(), proprio, instructions)
 
 
 def index_obs(obs: dict[str, np.ndarray], i: int) -> dict[str, np.ndarray]:

@@ -1,0 +1,58 @@
+"""Success of an sft artifact's policy in the simulator, without PPO: the evaluate stage's own jobs
+(same scenes, same initial states, same success check), for iterating on SFT quickly.
+
+    PYTHONPATH=. .venv/bin/python scripts/evaluate_sft.py <collect> <tokenize> <sft> [--episodes 25] [--jobs 2]
+
+Prints success per (task, split) and pooled, with Wilson 95% intervals, and writes the per-episode
+results next to nothing else (``--out results.jsonl`` to keep them).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    for name in ("collect", "tokenize", "sft"):
+        ap.add_argument(name, type=Path)
+    ap.add_argument("--episodes", type=int, default=25, help="episodes per (task, split)")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--splits", default="ind,ood")
+    ap.add_argument("--max-steps", type=int, default=75)
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+
+    from stages.evaluate import Config
+    from stages.evaluate.jobs import build_jobs
+    from stages.evaluate.episodes import run_job
+    from stages.evaluate.stats import fmt_rate
+    from stages.sft import read_policy_json
+
+    info = read_policy_json(args.sft)
+    dirs = {"collect": args.collect, "tokenize": args.tokenize, "sft": args.sft, "rl": Path("/nonexistent")}
+    ctx = SimpleNamespace(input=lambda name: dirs[name], device="cpu")
+    cfg = Config(episodes=args.episodes, policies=["sft"], splits=args.splits.split(","), videos=False,
+                 max_steps=args.max_steps, snapshot_episodes=0)
+    jobs = build_jobs(ctx, cfg, {"tasks": info["tasks"], "frame_skip": info["frame_skip"]})
+    t0 = time.perf_counter()
+    with mp.get_context("spawn").Pool(args.jobs) as pool:
+        results = [r for rs in pool.imap_unordered(run_job, jobs) for r in rs]
+    seconds = time.perf_counter() - t0
+    if args.out is not None:
+        args.out.write_text("".join(json.dumps(r) + "\n" for r in results))
+    print(f"{len(results)} episodes in {seconds:.0f} s ({args.jobs} workers)")
+    for split in cfg.splits:
+        cells = []
+        for task in [*info["tasks"], "all"]:
+            rs = [r for r in results if r["split"] == split and (task == "all" or r["task"] == task)]
+            cells.append(f"{task} {fmt_rate(sum(r['success'] for r in rs), len(rs))}")
+        print(f"{split}: " + " | ".join(cells))
+
+
+if __name__ == "__main__":
+    main()

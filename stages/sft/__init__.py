@@ -1,0 +1,196 @@
+"""sft: behaviour cloning of one multi-task policy on the collected demonstrations (the paper's
+"Supervised Finetune" row and the starting point of every RL method).
+
+Its own stage so that every point of a reward sweep reuses one SFT policy per (seed, tasks): the
+rl stage only fine-tunes it. Recipe (docs/sft.md): per-dimension action normalisation inside the
+network (``policy.TaskPolicy``), the gripper as an open / close decision executed by its sign,
+every successful demonstration kind, a held-out split of demonstrations with early stopping, AdamW
+with a cosine schedule, and PPO's initial action noise set per dimension from the held-out residuals.
+
+Inputs:
+    collect -- demonstrations (states, actions, instructions; only successful episodes are used)
+    tokenize -- frame tokens (the visual part of the observation), the tokenizer, its IND train split
+
+Outputs:
+    sft_policy.pt        the behaviour-cloned policy (``stages.sft.policy.load_policy``)
+    policy.json          what the policy is and needs: frame_skip, tasks, observation layout, noise
+    text_embeddings.json MiniLM embedding of every instruction of the collect artifact
+    split.json           demonstration episodes trained on and held out (early stopping, R^2)
+    training.png         train / held-out loss per epoch
+    metrics.json         pairs, epochs, best epoch, held-out loss, per-dimension R^2 and residual std
+
+Key includes:
+    this config (tasks, kinds, frame skip, recipe, seed) and the keys of collect and tokenize.
+    Not the reward, not any PPO setting: a reward sweep shares one sft artifact per seed.
+
+Toy profile:
+    a few epochs on the toy demonstrations (seconds).
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from stages.collect import SUBOPTIMAL_KINDS, TASK_NAMES
+
+POLICY_JSON = "policy.json"
+TEXT_EMBEDDINGS = "text_embeddings.json"
+
+
+class Config(BaseModel):
+    """sft stage configuration (defaults sized for the ``small`` profile)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    seed: int = Field(0, description="seed of initialisation, the held-out split and batch order")
+    tasks: list[Literal["pick_place", "push", "pull", "move_to_aim"]] = Field(
+        list(TASK_NAMES), min_length=1, description="tasks the one policy is cloned on (multi-task when several)")
+    kinds: list[Literal["optimal", "waypoint_noise", "interpolate", "grasp_disturb"]] = Field(
+        ["optimal", *SUBOPTIMAL_KINDS], min_length=1, description="trajectory kinds used as demonstrations (successful ones only)")
+    frame_skip: int = Field(4, ge=1, description="control steps per policy step; must equal train_wm.frame_skip (rl checks)")
+    data_fraction: float = Field(1.0, gt=0, le=1, description="fraction of the demonstration episodes used (learning curves)")
+    val_fraction: float = Field(0.1, ge=0, lt=1, description="demonstration episodes held out for early stopping and R^2")
+    epochs: int = Field(150, ge=0, description="maximum epochs (0 = an untrained policy)")
+    patience: int = Field(20, ge=1, description="stop after this many epochs without a better held-out loss")
+    lr: float = Field(1e-3, gt=0, description="peak AdamW learning rate (cosine decay to 0 over `epochs`)")
+    weight_decay: float = Field(1e-4, ge=0)
+    batch_size: int = Field(256, ge=1)
+    gripper_weight: float = Field(1.0, ge=0, description="weight of the gripper dimension in the normalised loss")
+    features_dim: int = Field(256, ge=8, description="width of the observation features")
+    net_arch: int = Field(256, ge=8, description="width of the two hidden layers of the actor and of the critic")
+    use_proprio: bool = Field(True, description="the policy reads proprioception (False: the ablation without it)")
+    normalize_actions: bool = Field(True, description="per-dimension action normalisation in the loss and network "
+                                    "(False: raw actions, where the +-1 gripper dominates the MSE)")
+    noise_scale: float = Field(1.0, gt=0, description="PPO's initial action std = noise_scale x held-out residual std")
+    noise_floor: float = Field(0.02, gt=0, description="lower bound of the initial action std (action units)")
+
+    @model_validator(mode="after")
+    def _unique(self) -> "Config":
+        if len(set(self.tasks)) != len(self.tasks):
+            raise ValueError(f"tasks repeat: {self.tasks}")
+        return self
+
+
+def read_policy_json(sft_dir: str | Path) -> dict:
+    """The sft artifact's ``policy.json`` (frame_skip, tasks, observation layout), with a clear error."""
+    path = Path(sft_dir) / POLICY_JSON
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: is {sft_dir} a committed sft artifact?")
+    return json.loads(path.read_text())
+
+
+def run(ctx) -> None:
+    from stages.collect.dataset import Dataset
+    from stages.common.text_encoder import encode_texts
+    from stages.sft.data import load_demo, pairs
+    from stages.sft.observation import ObservationFn
+    from stages.sft.policy import POLICY_FILE, behaviour_clone, evaluate_pairs, make_policy, policy_kwargs
+    from stages.tokenize.store import TokenStore
+    from stages.tokenize.tokenizer import load_tokenizer
+
+    cfg: Config = ctx.config
+    t0 = time.perf_counter()
+    if ctx.device == "cpu":
+        torch.set_num_threads(max(1, ctx.jobs))
+    ds, store = Dataset(ctx.input("collect")), TokenStore(ctx.input("tokenize"))
+    tok = load_tokenizer(ctx.input("tokenize"), ctx.device)
+    instructions = sorted({m.instruction for m in ds.episodes})
+    text = {s: e.tolist() for s, e in zip(instructions, encode_texts(instructions))}
+    (ctx.out / TEXT_EMBEDDINGS).write_text(json.dumps(text) + "\n")
+    obs_fn = ObservationFn(tok, text)
+
+    pool = set(json.loads((ctx.input("tokenize") / "split.json").read_text())["train"])
+    ids = sorted(m.episode_id for m in ds.episodes
+                 if m.episode_id in pool and m.success and m.task in cfg.tasks and m.kind in cfg.kinds)
+    if not ids:
+        raise ValueError(f"no successful IND training demonstrations of tasks {cfg.tasks} and kinds {cfg.kinds} "
+                         f"in {ctx.input('collect')}")
+    rng = np.random.default_rng(cfg.seed)
+    order = [ids[i] for i in rng.permutation(len(ids))]
+    n_val = int(round(cfg.val_fraction * len(order))) if len(order) > 1 else 0
+    val_ids, train_ids = sorted(order[:n_val]), order[n_val:]
+    train_ids = sorted(train_ids[: max(1, int(round(cfg.data_fraction * len(train_ids))))])
+    (ctx.out / "split.json").write_text(json.dumps({"train": train_ids, "val": val_ids}, indent=1) + "\n")
+
+    with ctx.progress(len(train_ids) + len(val_ids), "sft: demonstrations", unit="ep") as bar:
+        demos = {}
+        for i in train_ids + val_ids:
+            demos[i] = load_demo(ds, store, i, cfg.frame_skip)
+            bar.update(1)
+    train = pairs([demos[i] for i in train_ids], obs_fn)
+    val = pairs([demos[i] for i in val_ids], obs_fn) if val_ids else None
+    if cfg.normalize_actions:
+        loc, scale = train[1].mean(0), np.maximum(train[1].std(0), 1e-3)
+    else:
+        loc, scale = np.zeros(7, np.float32), np.ones(7, np.float32)
+    kwargs = policy_kwargs(loc, scale, features_dim=cfg.features_dim, net_arch=cfg.net_arch, use_proprio=cfg.use_proprio)
+    policy = make_policy(obs_fn.space, kwargs, cfg.lr).to(ctx.device)
+    ctx.log.info("sft: %d train / %d held-out demonstrations (%d / %d pairs), tasks %s, kinds %s",
+                 len(train_ids), len(val_ids), len(train[1]), 0 if val is None else len(val[1]), cfg.tasks, cfg.kinds)
+    t_fit = time.perf_counter()
+    with ctx.progress(cfg.epochs, "sft: epochs", unit="epoch") as bar:
+        hist = behaviour_clone(policy, train, val, epochs=cfg.epochs, lr=cfg.lr, weight_decay=cfg.weight_decay,
+                               batch_size=cfg.batch_size, patience=cfg.patience, gripper_weight=cfg.gripper_weight,
+                               seed=cfg.seed, progress=bar)
+    fit_seconds = time.perf_counter() - t_fit
+    held = evaluate_pairs(policy, val if val is not None else train, cfg.gripper_weight)
+    train_eval = evaluate_pairs(policy, train, cfg.gripper_weight)
+    noise = np.maximum(cfg.noise_scale * np.asarray(held["residual_std"]), cfg.noise_floor)
+    with torch.no_grad():
+        policy.log_std.copy_(torch.as_tensor(np.log(noise), dtype=torch.float32))
+    policy.save(str(ctx.out / POLICY_FILE))
+    _plot(hist, ctx.out / "training.png")
+
+    info = {"frame_skip": cfg.frame_skip, "tasks": list(cfg.tasks), "observation": sorted(obs_fn.space.spaces),
+            "grid": list(tok.grid), "bits": tok.bits, "action_loc": loc.tolist(), "action_scale": scale.tolist(),
+            "initial_action_std": noise.tolist(), "policy_kwargs": {k: v for k, v in kwargs.items() if k != "features_extractor_class"}}
+    (ctx.out / POLICY_JSON).write_text(json.dumps(info, indent=1) + "\n")
+    dims = ["dx", "dy", "dz", "rx", "ry", "rz", "gripper"]
+    metrics = {
+        "demonstrations/train": len(train_ids), "demonstrations/val": len(val_ids),
+        "pairs/train": int(len(train[1])), "pairs/val": 0 if val is None else int(len(val[1])),
+        "epochs_run": hist["epochs_run"], "best_epoch": hist["best_epoch"],
+        "loss/train_first": hist["train"][0] if hist["train"] else None,
+        "loss/train_last": hist["train"][-1] if hist["train"] else None,
+        "loss/val_best": min(hist["val"]) if hist["val"] else None,
+        "loss_history": {"train": hist["train"], "val": hist["val"]},
+        "val/gripper_sign_accuracy": held["gripper_sign_accuracy"],
+        "train/gripper_sign_accuracy": train_eval["gripper_sign_accuracy"],
+        **{f"val/r2/{d}": v for d, v in zip(dims, held["r2"])},
+        **{f"train/r2/{d}": v for d, v in zip(dims, train_eval["r2"])},
+        **{f"val/residual_std/{d}": v for d, v in zip(dims, held["residual_std"])},
+        "fit_seconds": fit_seconds, "stage_seconds": time.perf_counter() - t0,
+    }
+    ctx.write_metrics(metrics)
+    ctx.log.info("sft: %d epochs (best %d) in %.0f s; held-out R^2 %s, gripper sign accuracy %.3f",
+                 hist["epochs_run"], hist["best_epoch"], fit_seconds,
+                 [round(v, 3) for v in held["r2"]], held["gripper_sign_accuracy"])
+
+
+def _plot(hist: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3))
+    ax.plot(range(1, len(hist["train"]) + 1), hist["train"], label="train")
+    if hist["val"]:
+        ax.plot(range(1, len(hist["val"]) + 1), hist["val"], label="held-out demonstrations")
+        ax.axvline(hist["best_epoch"], color="grey", ls=":", lw=1)
+    ax.set_yscale("log")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("normalised action MSE")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+__all__ = ["Config", "run", "read_policy_json", "POLICY_JSON", "TEXT_EMBEDDINGS"]

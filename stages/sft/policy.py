@@ -1,0 +1,218 @@
+"""The policy: a stable-baselines3 actor-critic over {tokenizer latent, proprioception, instruction},
+behaviour-cloned on demonstrations here (SFT), then fine-tuned with PPO by the rl stage.
+
+Any policy that maps the observation dict to a (7,) delta-EE action plugs into the same envs:
+``act(policy, obs) -> actions`` is the only call evaluation makes (a VLA on a GPU would implement it
+with its own image pipeline behind ``ObservationFn``).
+
+Actions are normalised per dimension inside the network: the action head predicts z and the policy
+outputs ``loc + scale * z`` (``Affine``, fixed buffers fitted on the demonstrations), so the loss
+weighs a 0.1-sized arm action as much as the +-1 gripper, and PPO's Gaussian noise (``log_std``) is
+set per dimension in action units from SFT's held-out residuals.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from stable_baselines3.common.policies import MultiInputActorCriticPolicy
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+
+from stages.common.action_space import GRIPPER, executed
+
+POLICY_FILE = "sft_policy.pt"
+
+
+class LatentExtractor(BaseFeaturesExtractor):
+    """codes (B, bits, h, w) -> small CNN; proprio (B, 10) -> MLP; instruction (B, 384) -> linear; concatenated.
+
+    ``use_proprio=False`` zeroes the proprioception input (the ablation without it; same network).
+    """
+
+    def __init__(self, observation_space: gym.spaces.Dict, features_dim: int = 256, use_proprio: bool = True):
+        super().__init__(observation_space, features_dim)
+        self.use_proprio = use_proprio
+        bits, h, w = observation_space["codes"].shape
+        self.cnn = nn.Sequential(
+            nn.Conv2d(bits, 64, 3, padding=1), nn.GELU(),
+            nn.Conv2d(64, 64, 3, stride=2, padding=1), nn.GELU(),
+            nn.Flatten(),
+        )
+        cnn_out = 64 * ((h + 1) // 2) * ((w + 1) // 2)
+        self.proprio = nn.Sequential(nn.Linear(observation_space["proprio"].shape[0], 64), nn.GELU())
+        self.text = nn.Sequential(nn.Linear(observation_space["instruction"].shape[0], 64), nn.GELU())
+        self.proj = nn.Sequential(nn.Linear(cnn_out + 128, features_dim), nn.GELU())
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        proprio = obs["proprio"] if self.use_proprio else torch.zeros_like(obs["proprio"])
+        parts = [self.cnn(obs["codes"]), self.proprio(proprio), self.text(obs["instruction"])]
+        return self.proj(torch.cat(parts, 1))  # (B, F)
+
+
+class Affine(nn.Module):
+    """z (B, 7) -> loc + scale * z, with fixed (non-trained) loc and scale."""
+
+    def __init__(self, loc, scale):
+        super().__init__()
+        self.register_buffer("loc", torch.as_tensor(loc, dtype=torch.float32))
+        self.register_buffer("scale", torch.as_tensor(scale, dtype=torch.float32))
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.loc + self.scale * z
+
+
+class TaskPolicy(MultiInputActorCriticPolicy):
+    """SB3's multi-input actor-critic whose action head ends in ``Affine(action_loc, action_scale)``.
+
+    :param action_loc: (7,) per-dimension action offset (demonstration mean).
+    :param action_scale: (7,) per-dimension action scale (demonstration std, floored).
+    Every other argument is ``MultiInputActorCriticPolicy``'s.
+    """
+
+    def __init__(self, *args, action_loc=(0.0,) * 7, action_scale=(1.0,) * 7, **kwargs):
+        self.action_loc, self.action_scale = [float(v) for v in action_loc], [float(v) for v in action_scale]
+        super().__init__(*args, **kwargs)
+
+    def _build(self, lr_schedule) -> None:
+        super()._build(lr_schedule)
+        self.action_net = nn.Sequential(self.action_net, Affine(self.action_loc, self.action_scale))
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        return {**super()._get_constructor_parameters(), "action_loc": self.action_loc, "action_scale": self.action_scale}
+
+    def mean_action(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The Gaussian's mean (B, 7) in action units, through the actor only."""
+        extractor = self.pi_features_extractor if not self.share_features_extractor else self.features_extractor
+        features = extractor(obs)
+        return self.action_net(self.mlp_extractor.forward_actor(features))
+
+    def normalized(self, actions: torch.Tensor) -> torch.Tensor:
+        """Actions (B, 7) in the head's units z = (a - loc) / scale."""
+        affine = self.action_net[-1]
+        return (actions - affine.loc) / affine.scale
+
+
+def policy_kwargs(action_loc, action_scale, *, features_dim: int = 256, net_arch: int = 256,
+                  share_features: bool = False, log_std_init: float = -1.0, use_proprio: bool = True) -> dict:
+    """The constructor arguments that define the network: SFT builds it with these and PPO reuses them."""
+    return dict(features_extractor_class=LatentExtractor,
+                features_extractor_kwargs={"features_dim": features_dim, "use_proprio": use_proprio},
+                net_arch=dict(pi=[net_arch, net_arch], vf=[net_arch, net_arch]), share_features_extractor=share_features,
+                log_std_init=log_std_init, action_loc=[float(v) for v in action_loc],
+                action_scale=[float(v) for v in action_scale])
+
+
+def make_policy(observation_space: gym.spaces.Dict, kwargs: dict, lr: float = 1e-3) -> TaskPolicy:
+    """A fresh ``TaskPolicy`` for ``observation_space`` and 7-d actions in [-1, 1]."""
+    action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
+    return TaskPolicy(observation_space, action_space, lambda _: lr, **kwargs)
+
+
+def _loss(policy: TaskPolicy, obs: dict[str, torch.Tensor], target: torch.Tensor, gripper_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(mean loss, per-dimension squared error (B, 7) in normalised units) of the policy mean vs targets."""
+    err = (policy.normalized(policy.mean_action(obs)) - policy.normalized(target)) ** 2  # (B, 7)
+    weights = torch.ones(7, device=err.device)
+    weights[GRIPPER] = gripper_weight
+    return (err * weights).sum(1).mean() / weights.sum(), err
+
+
+def behaviour_clone(policy: TaskPolicy, train: tuple[dict, np.ndarray], val: tuple[dict, np.ndarray] | None, *,
+                    epochs: int, lr: float, weight_decay: float, batch_size: int, patience: int, gripper_weight: float,
+                    seed: int, progress=None) -> dict:
+    """Regress the policy's mean action on (obs, action) pairs with AdamW and a cosine schedule;
+    keep the weights of the best held-out epoch (early stopping after ``patience`` epochs without
+    improvement). obs: {"codes": (M, bits, h, w), "proprio": (M, 10), "instruction": (M, 384)},
+    actions (M, 7). Returns the loss history and the best epoch.
+    """
+    dev = policy.device
+    gen = torch.Generator().manual_seed(seed)
+    params = [p for n, p in policy.named_parameters()
+              if not n.startswith(("value_net", "mlp_extractor.value_net", "vf_features_extractor", "log_std"))]
+    opt = torch.optim.AdamW(params, lr=lr, weight_decay=weight_decay)
+    steps_per_epoch = max(1, math.ceil(len(train[1]) / batch_size))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: 0.5 * (1 + math.cos(math.pi * min(1.0, s / (epochs * steps_per_epoch)))))
+    x = {k: torch.as_tensor(v, device=dev) for k, v in train[0].items()}
+    y = torch.as_tensor(train[1], dtype=torch.float32, device=dev)
+    hist: dict = {"train": [], "val": [], "best_epoch": 0, "epochs_run": 0}
+    best, best_state, waited = float("inf"), None, 0
+    for epoch in range(epochs):
+        policy.set_training_mode(True)
+        perm = torch.randperm(len(y), generator=gen).to(dev)
+        total = 0.0
+        for i in range(0, len(y), batch_size):
+            idx = perm[i: i + batch_size]
+            loss, _ = _loss(policy, {k: v[idx] for k, v in x.items()}, y[idx], gripper_weight)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            total += float(loss.detach()) * len(idx)
+        hist["train"].append(total / len(y))
+        hist["epochs_run"] = epoch + 1
+        if progress is not None:
+            progress.update(1)
+        if val is None:
+            continue
+        v = evaluate_pairs(policy, val, gripper_weight)["loss"]
+        hist["val"].append(v)
+        if v < best:
+            best, best_state, waited, hist["best_epoch"] = v, copy.deepcopy(policy.state_dict()), 0, epoch + 1
+        else:
+            waited += 1
+            if waited >= patience:
+                break
+    if best_state is not None:
+        policy.load_state_dict(best_state)
+    policy.set_training_mode(False)
+    return hist
+
+
+@torch.no_grad()
+def evaluate_pairs(policy: TaskPolicy, pairs: tuple[dict, np.ndarray], gripper_weight: float = 1.0,
+                   batch_size: int = 1024) -> dict:
+    """Held-out loss, per-dimension R^2 and residual std (action units), gripper sign accuracy."""
+    policy.set_training_mode(False)
+    obs, actions = pairs
+    dev = policy.device
+    means = []
+    for i in range(0, len(actions), batch_size):
+        means.append(policy.mean_action({k: torch.as_tensor(v[i: i + batch_size], device=dev) for k, v in obs.items()}).cpu())
+    pred = torch.cat(means).numpy()  # (M, 7)
+    target = np.asarray(actions, np.float32)
+    loss, _ = _loss(policy, {k: torch.as_tensor(v, device=dev) for k, v in obs.items()},
+                    torch.as_tensor(target, device=dev), gripper_weight) if len(target) <= 20000 else (torch.tensor(float("nan")), None)
+    resid = pred - target
+    var = target.var(0)
+    r2 = 1.0 - (resid ** 2).mean(0) / np.where(var > 0, var, np.nan)
+    return {"loss": float(loss), "r2": [float(v) for v in r2], "residual_std": [float(v) for v in resid.std(0)],
+            "gripper_sign_accuracy": float(np.mean(np.sign(pred[:, GRIPPER] + 1e-12) == np.sign(target[:, GRIPPER])))}
+
+
+def act(policy, obs: dict[str, np.ndarray], deterministic: bool = True) -> np.ndarray:
+    """Executed actions (B, 7) for an observation batch (``stages.common.action_space.executed``)."""
+    actions, _ = policy.predict(obs, deterministic=deterministic)
+    return executed(np.asarray(actions, dtype=np.float32))
+
+
+def load_policy(path: str | Path, device: str = "cpu"):
+    """A trained policy: the SFT policy file (``sft_policy.pt``) or a PPO model zip (its policy)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no policy at {path}")
+    if path.suffix == ".zip":
+        from stable_baselines3 import PPO
+
+        return PPO.load(str(path), device=device).policy
+    return TaskPolicy.load(str(path), device=device)
+
+
+def flat_params(policy) -> torch.Tensor:
+    return torch.cat([p.detach().flatten().cpu() for p in policy.parameters()])
