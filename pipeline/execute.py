@@ -129,9 +129,11 @@ def execute_node(p: dict[str, Any]) -> dict[str, Any]:
         )
         _seed_everything(p["seed"])
         try:
-            checked = f": inputs verified ({in_bytes / 2**20:.1f} MiB in {t_in:.2f} s)" if p["inputs"] else ""
-            log.info("started %s%s", key[:12], checked)
-            log.info("config: %s", json.dumps(p["config"], sort_keys=True), extra={"file_only": True})
+            file_only = {"file_only": True}  # the console already has the runner's one-line header
+            log.info("started %s %s (profile %s, device %s)", stage, key, p["profile"], p["device"], extra=file_only)
+            log.info("config: %s", json.dumps(p["config"], sort_keys=True), extra=file_only)
+            if p["inputs"]:
+                log.info("inputs verified: %s, %.1f MiB in %.2f s", ", ".join(sorted(p["inputs"])), in_bytes / 2**20, t_in)
             mod.run(ctx)
             log.info("finished in %.1f s", time.perf_counter() - t0)
         except BaseException as e:
