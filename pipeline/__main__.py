@@ -204,9 +204,9 @@ def cmd_verify(project: Project, args, argv) -> int:
             bad.append(n.stage)
             print(f"  {n.stage:<10} {n.short}  FAILED\n" + "\n".join(f"      {p}" for p in problems))
         else:
-            files = project.store.lookup(n.stage, n.key).manifest["files"]
-            size = sum(f["size"] for f in files.values())
-            print(f"  {n.stage:<10} {n.short}  ok ({len(files)} files, {size / 2**20:.1f} MiB in {time.perf_counter() - t:.2f} s)")
+            look = project.store.lookup(n.stage, n.key)
+            print(f"  {n.stage:<10} {n.short}  ok ({len(look.manifest['files'])} files, {look.nbytes / 2**20:.1f} MiB "
+                  f"in {time.perf_counter() - t:.2f} s)")
     if bad:
         rerun = rerun_options(argv, profile or "default")
         say(f"error: {len(bad)} artifact(s) differ from their manifests ({', '.join(bad)}); repair: python -m pipeline run "

@@ -45,7 +45,7 @@ def verify_inputs(store: Store, inputs: Mapping[str, str], rerun: str = "") -> i
         if problems:
             bad[stage] = problems
         else:
-            total += sum(f["size"] for f in store.lookup(stage, key).manifest["files"].values())
+            total += store.lookup(stage, key).nbytes
     if bad:
         lines = [f"  {p}" for problems in bad.values() for p in problems]
         force = " ".join(f"--force {s}" for s in bad)

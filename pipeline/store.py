@@ -42,6 +42,11 @@ class Lookup:
     manifest: dict | None = None
     problem: str = ""
 
+    @property
+    def nbytes(self) -> int:
+        """Total size of the outputs the manifest lists (0 without a manifest)."""
+        return sum(f.get("size", 0) for f in (self.manifest or {}).get("files", {}).values())
+
 
 def file_digest(path: Path) -> str:
     h = blake3.blake3()
