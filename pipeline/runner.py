@@ -107,10 +107,12 @@ def execute(
     try:
         while True:
             pending = [n for n in nodes if n.key not in done and n.key not in failed_keys]
-            blocked = [n for n in pending if any(k in failed_keys for k in n.inputs.values())]
-            for n in blocked:
-                failed_keys.add(n.key)
-                log_node(n, "skipped", note="an input failed")
+            blocked = []
+            for n in pending:  # in topological order, so one pass reaches every descendant of a failure
+                if any(k in failed_keys for k in n.inputs.values()):
+                    failed_keys.add(n.key)
+                    blocked.append(n)
+                    log_node(n, "skipped", note="an input failed")
             pending = [n for n in pending if n not in blocked]
             wave = [n for n in pending if all(k in done for k in n.inputs.values())]
             if not wave:
