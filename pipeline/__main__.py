@@ -1,4 +1,4 @@
-"""CLI: python -m pipeline {run,status,dag,sweep,show,gc}. See README.md."""
+"""CLI: python -m pipeline {run,status,dag,sweep,show,verify,gc}. See README.md."""
 from __future__ import annotations
 
 import argparse
@@ -6,12 +6,13 @@ import json
 import os
 import shutil
 import sys
+import time
 from pathlib import Path
 
 from pipeline.errors import PipelineError
 from pipeline.executors import EXECUTORS
 from pipeline.plan import Project, parse_set, selection
-from pipeline.runner import execute, say
+from pipeline.runner import execute, rerun_options, say
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -65,6 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p), _config_args(p)
     p.add_argument("stage")
     p.add_argument("--verify", action="store_true", help="re-hash every output against the manifest")
+    p = sub.add_parser("verify", help="re-hash the current keys' artifacts against their manifests")
+    _common(p), _config_args(p)
+    p.add_argument("stages", nargs="*", metavar="STAGE", help="stages to verify (default: every stage)")
     p = sub.add_parser("gc", help="remove staging leftovers, old run records, unreferenced artifacts")
     _common(p)
     p.add_argument("--dry-run", action="store_true")
@@ -180,6 +184,37 @@ def cmd_show(project: Project, args) -> int:
     return 0 if look.state == "ok" else 1
 
 
+def cmd_verify(project: Project, args, argv) -> int:
+    """Re-hash each selected stage's artifact at its current key; 1 and every bad file named if any differ."""
+    profile, sets = _prepare(project, args)
+    for s in args.stages:
+        if s not in project.needs:
+            raise PipelineError(f"verify: unknown stage {s!r}; known stages: {', '.join(project.order)}")
+    wanted = args.stages or project.order
+    nodes = [n for n in project.plan(wanted, profile, sets, label=profile or "default") if n.stage in wanted]
+    print(f"profile: {profile}")
+    bad = []
+    for n in nodes:
+        if project.store.lookup(n.stage, n.key).state == "missing":
+            print(f"  {n.stage:<10} {n.short}  not built, nothing to verify")
+            continue
+        t = time.perf_counter()
+        problems = project.store.verify(n.stage, n.key)
+        if problems:
+            bad.append(n.stage)
+            print(f"  {n.stage:<10} {n.short}  FAILED\n" + "\n".join(f"      {p}" for p in problems))
+        else:
+            look = project.store.lookup(n.stage, n.key)
+            print(f"  {n.stage:<10} {n.short}  ok ({len(look.manifest['files'])} files, {look.nbytes / 2**20:.1f} MiB "
+                  f"in {time.perf_counter() - t:.2f} s)")
+    if bad:
+        rerun = rerun_options(argv, profile or "default")
+        say(f"error: {len(bad)} artifact(s) differ from their manifests ({', '.join(bad)}); repair: python -m pipeline run "
+            + " ".join(f"--force {s}" for s in bad) + (f" {rerun}" if rerun else ""))
+        return 1
+    return 0
+
+
 def cmd_gc(project: Project, args) -> int:
     store = project.store
     doomed: list[Path] = list(store.stale_staging())
@@ -225,6 +260,8 @@ def main(argv: list[str] | None = None) -> int:
             return cmd_sweep(project, args, argv)
         if args.cmd == "show":
             return cmd_show(project, args)
+        if args.cmd == "verify":
+            return cmd_verify(project, args, argv)
         if args.cmd == "gc":
             return cmd_gc(project, args)
     except PipelineError as e:

@@ -1,4 +1,4 @@
-"""Run one node: lock its key, recheck the store, run the stage into a staging dir, commit.
+"""Run one node: lock its key, recheck the store, verify its inputs, run the stage into a staging dir, commit.
 
 ``execute_node`` is module-level and takes only plain data, so the local process pool and Ray
 tasks call the very same function.
@@ -6,6 +6,7 @@ tasks call the very same function.
 from __future__ import annotations
 
 import importlib
+import json
 import logging
 import random
 import shutil
@@ -13,9 +14,10 @@ import sys
 import time
 import traceback
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from pipeline.context import StageContext
+from pipeline.errors import PipelineError
 from pipeline.progress import Progress
 from pipeline.store import Store
 
@@ -26,6 +28,32 @@ class StageFailed(Exception):
     def __init__(self, stage: str, key: str, error: str, log_path: Path | None):
         self.stage, self.key, self.error, self.log_path = stage, key, error, log_path
         super().__init__(f"stage {stage!r} ({key[:12]}) failed: {error}" + (f"\n  log: {log_path}" if log_path else ""))
+
+    def __reduce__(self):  # crosses process-pool and Ray boundaries with all four fields
+        return StageFailed, (self.stage, self.key, self.error, self.log_path)
+
+
+def verify_inputs(store: Store, inputs: Mapping[str, str], rerun: str = "") -> int:
+    """Re-hash the input artifacts (stage -> key) a stage is about to read; returns their total bytes.
+
+    Raises PipelineError naming every file that differs from its manifest and the command that
+    rebuilds its artifact (``rerun``: the options that select the same keys, e.g. ``--profile toy``).
+    """
+    total, bad = 0, {}
+    for stage, key in sorted(inputs.items()):
+        problems = store.verify(stage, key)
+        if problems:
+            bad[stage] = problems
+        else:
+            total += store.lookup(stage, key).nbytes
+    if bad:
+        lines = [f"  {p}" for problems in bad.values() for p in problems]
+        force = " ".join(f"--force {s}" for s in bad)
+        raise PipelineError(
+            "an input artifact does not match its manifest, so the stage did not start:\n" + "\n".join(lines)
+            + f"\n  repair: python -m pipeline run {force}{(' ' + rerun) if rerun else ''}"
+        )
+    return total
 
 
 def _seed_everything(seed: int) -> None:
@@ -42,6 +70,7 @@ def _seed_everything(seed: int) -> None:
 
 
 def _stage_logger(stage: str, key: str, log_file: Path) -> tuple[logging.Logger, logging.Handler]:
+    """The stage's logger: every record to ``log_file``, those without ``extra={"file_only": True}`` to stderr."""
     log = logging.getLogger(f"stage.{stage}.{key[:12]}")
     log.setLevel(logging.INFO)
     log.propagate = False
@@ -51,6 +80,7 @@ def _stage_logger(stage: str, key: str, log_file: Path) -> tuple[logging.Logger,
     if not any(isinstance(h, logging.StreamHandler) and not isinstance(h, logging.FileHandler) for h in log.handlers):
         sh = logging.StreamHandler(sys.stderr)
         sh.setFormatter(logging.Formatter(f"  [{stage}] %(message)s"))
+        sh.addFilter(lambda record: not getattr(record, "file_only", False))
         log.addHandler(sh)
     return log, fh
 
@@ -72,6 +102,12 @@ def execute_node(p: dict[str, Any]) -> dict[str, Any]:
             store.write_ref(p["label"], stage, key, p["key_inputs"])
             return {"stage": stage, "key": key, "action": "cached", "duration_s": 0.0,
                     "note": "committed by another run while this one waited"}
+        t_in = time.perf_counter()
+        try:
+            in_bytes = verify_inputs(store, p["key_inputs"]["inputs"], p.get("rerun", ""))
+        except PipelineError as e:
+            raise StageFailed(stage, key, str(e), None) from None
+        t_in = time.perf_counter() - t_in
         mod = importlib.import_module(p["module"])
         config = mod.Config.model_validate(p["config"])
         staging = store.staging(stage, key)
@@ -93,7 +129,11 @@ def execute_node(p: dict[str, Any]) -> dict[str, Any]:
         )
         _seed_everything(p["seed"])
         try:
-            log.info("running %s (%s) with %s", stage, key[:12], p["config"])
+            file_only = {"file_only": True}  # the console already has the runner's one-line header
+            log.info("started %s %s (profile %s, device %s)", stage, key, p["profile"], p["device"], extra=file_only)
+            log.info("config: %s", json.dumps(p["config"], sort_keys=True), extra=file_only)
+            if p["inputs"]:
+                log.info("inputs verified: %s, %.1f MiB in %.2f s", ", ".join(sorted(p["inputs"])), in_bytes / 2**20, t_in)
             mod.run(ctx)
             log.info("finished in %.1f s", time.perf_counter() - t0)
         except BaseException as e:

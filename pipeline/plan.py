@@ -231,9 +231,5 @@ class Project:
         node.reasons = reasons or ["missing (artifact was removed)"]
 
 
-def load_project(spec_path: str | Path = "pipeline.yaml", store: str | Path | None = None) -> Project:
-    return Project(spec_path, store)
-
-
 def selection(project: Project, until: str | None, only: Sequence[str], start: str | None) -> list[str]:
     return select(project.needs, until=until, only=only, start=start)

@@ -1,47 +1,100 @@
-"""Progress bars for stages (tqdm on stderr), disabled when not attached to a terminal unless forced."""
+"""Progress for stages: a tqdm bar on a terminal, a plain line every ~30 s in a log or pipe."""
 from __future__ import annotations
 
 import os
 import sys
 import time
+from typing import Callable, TextIO
 
 from tqdm import tqdm
 
+LINE_INTERVAL_S = 30.0
+
 
 class Progress:
-    """A thin tqdm wrapper: a context manager with ``update(n)`` and ``postfix(**kv)``.
+    """A context manager with ``update(n)`` and ``postfix(**kv)``, in one of three modes.
 
-    When disabled it still counts, so a stage can log its rate at the end.
+    ``bar``: tqdm on stderr (stderr is a terminal, or ``PIPELINE_PROGRESS=1``, or ``enabled=True``).
+    ``lines``: stderr is not a terminal (a log file, ``nohup``, a batch job): one plain line at most
+    every ``interval`` seconds, ``desc done/total (pct), rate, ETA, postfix``, and a last one at
+    close if any was printed. ``off``: ``enabled=False`` or ``PIPELINE_PROGRESS=0``. Every mode
+    counts, so a stage can log its rate at the end.
+
+    :param total: items expected, or None when unknown (no percentage, no ETA)
+    :param desc: what is counted, e.g. ``"train_wm: action steps"``
+    :param unit: the item's name in the rate (``"it"`` -> ``it/s``)
+    :param enabled: force the bar (True) or silence (False); None picks by terminal and environment
+    :param interval: seconds between plain lines
+    :param clock: monotonic seconds (tests pass a fake one)
+    :param stream: where plain lines go (default: stderr at the time of printing)
     """
 
-    def __init__(self, total: int | None, desc: str, unit: str = "it", enabled: bool | None = None):
-        if enabled is None:
-            enabled = sys.stderr.isatty() or os.environ.get("PIPELINE_PROGRESS") == "1"
-        self.total, self.desc, self.n = total, desc, 0
-        self._t0 = time.perf_counter()
-        self._bar = tqdm(total=total, desc=desc, unit=unit, leave=False, dynamic_ncols=True) if enabled else None
+    def __init__(self, total: int | None, desc: str, unit: str = "it", enabled: bool | None = None, *,
+                 interval: float = LINE_INTERVAL_S, clock: Callable[[], float] = time.monotonic,
+                 stream: TextIO | None = None):
+        env = os.environ.get("PIPELINE_PROGRESS")
+        if enabled is False or (enabled is None and env == "0"):
+            self.mode = "off"
+        elif enabled or env == "1" or sys.stderr.isatty():
+            self.mode = "bar"
+        else:
+            self.mode = "lines"
+        self.total, self.desc, self.unit, self.n = total, desc, unit, 0
+        self._clock, self._interval, self._stream = clock, interval, stream
+        self._t0 = self._last_line = clock()
+        self._lines = 0
+        self._postfix: dict = {}
+        self._bar = tqdm(total=total, desc=desc, unit=unit, leave=False, dynamic_ncols=True) if self.mode == "bar" else None
 
     def update(self, n: int = 1) -> None:
         self.n += n
         if self._bar is not None:
             self._bar.update(n)
+        elif self.mode == "lines" and self._clock() - self._last_line >= self._interval:
+            self._print_line()
 
     def postfix(self, **kv) -> None:
+        self._postfix = kv
         if self._bar is not None:
             self._bar.set_postfix(kv, refresh=False)
 
     @property
     def rate(self) -> float:
         """Items per second since the bar was created."""
-        return self.n / max(time.perf_counter() - self._t0, 1e-9)
+        return self.n / max(self._clock() - self._t0, 1e-9)
+
+    def line(self) -> str:
+        """``desc done/total (pct), rate unit/s, ETA h:mm:ss, postfix`` as of now."""
+        rate = self.rate
+        parts = [f"{self.desc} {self.n}/{self.total} ({100 * self.n / self.total:.0f}%)" if self.total
+                 else f"{self.desc} {self.n}"]
+        parts.append(f"{rate:.3g} {self.unit}/s" if rate >= 1 or rate == 0 else f"{1 / rate:.3g} s/{self.unit}")
+        if self.total and rate > 0:
+            parts.append(f"ETA {_hms((self.total - self.n) / rate)}" if self.n < self.total else f"done in {_hms(self._clock() - self._t0)}")
+        if self._postfix:
+            parts.append(" ".join(f"{k}={v}" for k, v in self._postfix.items()))
+        return ", ".join(parts)
+
+    def _print_line(self) -> None:
+        print(f"  {self.line()}", file=self._stream or sys.stderr, flush=True)
+        self._last_line = self._clock()
+        self._lines += 1
 
     def close(self) -> None:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
+        elif self.mode == "lines" and self._lines:
+            self._print_line()
+            self.mode = "off"  # closed: a second close prints nothing
 
     def __enter__(self) -> "Progress":
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _hms(seconds: float) -> str:
+    s = int(round(seconds))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import secrets
+import shlex
 import sys
 import time
 from dataclasses import dataclass, field
@@ -106,10 +107,12 @@ def execute(
     try:
         while True:
             pending = [n for n in nodes if n.key not in done and n.key not in failed_keys]
-            blocked = [n for n in pending if any(k in failed_keys for k in n.inputs.values())]
-            for n in blocked:
-                failed_keys.add(n.key)
-                log_node(n, "skipped", note="an input failed")
+            blocked = []
+            for n in pending:  # in topological order, so one pass reaches every descendant of a failure
+                if any(k in failed_keys for k in n.inputs.values()):
+                    failed_keys.add(n.key)
+                    blocked.append(n)
+                    log_node(n, "skipped", note="an input failed")
             pending = [n for n in pending if n not in blocked]
             wave = [n for n in pending if all(k in done for k in n.inputs.values())]
             if not wave:
@@ -117,7 +120,7 @@ def execute(
             payloads = []
             for n in wave:
                 say(f"    {n.stage:<10} {n.short}  running: {'; '.join(n.reasons)}")
-                payloads.append(_payload(project, n, by_key, run_id, profile, executor, jobs, device))
+                payloads.append(_payload(project, n, by_key, run_id, profile, executor, jobs, device, argv))
 
             def on_done(p, result, err):
                 n = by_key[p["key"]]
@@ -144,7 +147,27 @@ def execute(
     return RunResult(record, failures)
 
 
-def _payload(project: Project, n: Node, by_key: dict[str, Node], run_id: str, profile, executor, jobs, device) -> dict:
+_KEY_OPTIONS = ("-f", "--file", "--store", "--profile", "--set")  # the options that decide which keys a run uses
+
+
+def rerun_options(argv: Sequence[str], label: str) -> str:
+    """The options of ``argv`` a repair command must repeat to hit the same keys, shell-quoted.
+
+    A sweep point's axis values are not in ``argv``; the label is appended so the user can add them.
+    """
+    out, args = [], list(argv)
+    for i, a in enumerate(args):
+        name, eq, value = a.partition("=")
+        if name in _KEY_OPTIONS:
+            out += [name, value] if eq else args[i:i + 2]
+    text = shlex.join(out)
+    if label.startswith("sweep:"):
+        text += f" (plus this sweep point's values as --set: {label.split(':', 2)[2]})"
+    return text.strip()
+
+
+def _payload(project: Project, n: Node, by_key: dict[str, Node], run_id: str, profile, executor, jobs, device,
+             argv: Sequence[str] = ()) -> dict:
     inputs = {}
     for stage, key in n.inputs.items():
         inputs[stage] = str(project.store.path(stage, key))
@@ -165,4 +188,5 @@ def _payload(project: Project, n: Node, by_key: dict[str, Node], run_id: str, pr
         "force": "forced" in n.reasons,
         "run_id": run_id,
         "executor": executor,
+        "rerun": rerun_options(argv, n.label),
     }

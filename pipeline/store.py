@@ -42,6 +42,11 @@ class Lookup:
     manifest: dict | None = None
     problem: str = ""
 
+    @property
+    def nbytes(self) -> int:
+        """Total size of the outputs the manifest lists (0 without a manifest)."""
+        return sum(f.get("size", 0) for f in (self.manifest or {}).get("files", {}).values())
+
 
 def file_digest(path: Path) -> str:
     h = blake3.blake3()
@@ -100,15 +105,9 @@ class Store:
 
     @staticmethod
     def _check_manifest(m: Any, stage: str, key: str, path: Path) -> str:
-        if not isinstance(m, dict):
-            return "manifest is not a JSON object"
-        missing = [k for k in _REQUIRED if k not in m]
-        if missing:
-            return f"manifest lacks {', '.join(missing)}"
-        if m["key"] != key or m["stage"] != stage:
-            return f"manifest is for {m['stage']}/{m['key']}, not {stage}/{key}"
-        if not isinstance(m["files"], dict):
-            return "manifest 'files' is not a mapping"
+        problem = Store._check_structure(m, stage, key)
+        if problem:
+            return problem
         for rel, info in m["files"].items():
             f = path / rel
             try:
@@ -119,15 +118,49 @@ class Store:
                 return f"output {rel} has {size} bytes, the manifest says {info.get('size')}"
         return ""
 
+    @staticmethod
+    def _check_structure(m: Any, stage: str, key: str) -> str:
+        if not isinstance(m, dict):
+            return "manifest is not a JSON object"
+        missing = [k for k in _REQUIRED if k not in m]
+        if missing:
+            return f"manifest lacks {', '.join(missing)}"
+        if m["key"] != key or m["stage"] != stage:
+            return f"manifest is for {m['stage']}/{m['key']}, not {stage}/{key}"
+        if not isinstance(m["files"], dict):
+            return "manifest 'files' is not a mapping"
+        return ""
+
     def verify(self, stage: str, key: str) -> list[str]:
-        """Re-hash every output against the manifest (slow; for `show --verify`). Returns problems."""
-        look = self.lookup(stage, key)
-        if look.state != "ok":
-            return [look.problem or "missing"]
+        """Re-hash every file of an artifact against its manifest: one line per problem, [] if intact.
+
+        Names each file whose bytes changed (even at the same size), each listed file that is gone
+        and each file the manifest does not list. Reads every byte, so planning never calls it;
+        `verify`, `show --verify` and a stage about to read its inputs do.
+        """
+        path = self.path(stage, key)
+        mpath = path / MANIFEST
+        if not mpath.exists():
+            return [f"{path}: no committed artifact ({MANIFEST} is missing)"]
+        try:
+            m = json.loads(mpath.read_text())
+        except (OSError, ValueError) as e:
+            return [f"{mpath}: unreadable manifest ({e.__class__.__name__}: {e})"]
+        problem = self._check_structure(m, stage, key)
+        if problem:
+            return [f"{mpath}: {problem}"]
         problems = []
-        for rel, info in look.manifest["files"].items():
-            if file_digest(look.path / rel) != info["blake3"]:
-                problems.append(f"{rel}: content differs from its digest in the manifest")
+        for rel, info in sorted(m["files"].items()):
+            f = path / rel
+            if not f.is_file():
+                problems.append(f"{f}: listed in the manifest but missing")
+            elif f.stat().st_size != info.get("size"):
+                problems.append(f"{f}: {f.stat().st_size} bytes, the manifest says {info.get('size')}")
+            elif file_digest(f) != info.get("blake3"):
+                problems.append(f"{f}: content differs from its blake3 digest in the manifest (same size)")
+        for f in sorted(path.rglob("*")):
+            if f.is_file() and f != mpath and str(f.relative_to(path)) not in m["files"]:
+                problems.append(f"{f}: not listed in the manifest (an extra file)")
         return problems
 
     # ---- writing -----------------------------------------------------------------------------

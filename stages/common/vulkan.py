@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -24,6 +25,9 @@ def ensure_vulkan() -> Path:
     A user-set ``VK_ICD_FILENAMES`` pointing at an existing file is respected. Must run before
     ``sapien`` is imported, since the Vulkan loader reads the variable once.
     """
+    # Without a system libvulkan.so.1 SAPIEN warns on import and loads its bundled loader, which is
+    # the intended set-up here (the ICD below is the driver); the warning only cluttered every log.
+    warnings.filterwarnings("ignore", message="Failed to find system libvulkan", category=UserWarning)
     user = os.environ.get("VK_ICD_FILENAMES")
     if user and all(Path(p).is_file() for p in user.split(os.pathsep)):
         return Path(user.split(os.pathsep)[0])

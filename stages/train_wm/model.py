@@ -334,6 +334,7 @@ class WorldModelNet(nn.Module):
         pooled = feats.mean(1)
         return self.done_head(pooled).squeeze(-1), pooled
 
+    # Eq. 1: next-frame tokens and done signal from frames 0..t and the control
     def forward(self, tokens: torch.Tensor, control: torch.Tensor, mask: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """Teacher-forced training pass over a clip.

@@ -217,6 +217,7 @@ class Rollout:
         self.clip_count += self.last_clip_count
         return torch.minimum(torch.maximum(actions, lo), hi)
 
+    # Eq. 1 in imagination: one new frame and done signal per env, temporal attention KV-cached
     @torch.no_grad()
     def step(self, actions: torch.Tensor | None = None, next_tokens: torch.Tensor | None = None) -> StepOutput:
         """Advance every env one frame. actions (B, 7) for the action WM, None for the text WM.

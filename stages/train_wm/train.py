@@ -21,6 +21,7 @@ def done_loss(logit: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, ki
     raise ValueError(f"done loss must be 'bce' or 'rmse', got {kind!r}")
 
 
+# Eq. 5: token cross-entropy plus the done loss (weighted by done_weight in train_world_model)
 def losses(net: WorldModelNet, batch: dict, gen: torch.Generator, done_kind: str,
            changed_weight: float = 1.0) -> dict[str, torch.Tensor]:
     """Token cross-entropy over hidden target tokens, token accuracy, and the done loss of one batch.
@@ -59,7 +60,7 @@ def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, b
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: min(1.0, (s + 1) / warmup) * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(s / steps, 1.0)))))
     history, t0, ema = [], time.perf_counter(), None
-    # bf16 autocast only on CUDA: on this CPU bf16 matmuls ran at ~1 GFLOP/s (DESIGN.md section 5)
+    # bf16 autocast only on CUDA: on a 2-core CPU without native bf16, bf16 matmuls ran at ~1 GFLOP/s (fp32 ~85)
     use_bf16 = torch.device(device).type == "cuda"
     for step in range(steps):
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_bf16):

@@ -1,0 +1,73 @@
+"""Progress off a terminal: a plain line at most every interval, with count, rate and ETA."""
+from __future__ import annotations
+
+import io
+import sys
+
+from pipeline.progress import Progress
+
+
+class FakeClock:
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def _progress(monkeypatch, total=400, **kw):
+    monkeypatch.delenv("PIPELINE_PROGRESS", raising=False)
+    monkeypatch.setattr(sys, "stderr", io.StringIO())  # not a terminal, even under `pytest -s`
+    clock, out = FakeClock(), io.StringIO()
+    return Progress(total, "train_wm: steps", clock=clock, stream=out, **kw), clock, out
+
+
+def test_off_a_terminal_a_line_at_most_every_interval(monkeypatch):
+    bar, clock, out = _progress(monkeypatch)
+    assert bar.mode == "lines"
+    for _ in range(100):  # 100 steps in 29 s: no line yet
+        clock.t += 0.29
+        bar.update(1)
+    assert out.getvalue() == ""
+    clock.t += 1.0  # 30 s since the start
+    bar.update(20)
+    assert out.getvalue() == "  train_wm: steps 120/400 (30%), 4 it/s, ETA 0:01:10\n"
+    clock.t += 10.0
+    bar.update(40)
+    assert out.getvalue().count("\n") == 1  # 10 s later: still one line
+    bar.postfix(loss="0.123")
+    clock.t += 20.0
+    bar.update(40)
+    last = out.getvalue().splitlines()[-1]
+    assert last.startswith("  train_wm: steps 200/400 (50%)") and last.endswith("loss=0.123")
+    bar.update(200)
+    bar.close()
+    assert out.getvalue().splitlines()[-1].startswith("  train_wm: steps 400/400 (100%), 6.67 it/s, done in 0:01:00")
+    bar.close()
+    assert out.getvalue().count("\n") == 3
+
+
+def test_a_short_job_prints_nothing(monkeypatch):
+    with _progress(monkeypatch)[0] as bar:
+        bar.update(400)
+    assert bar._stream.getvalue() == ""
+
+
+def test_unknown_total_and_slow_items(monkeypatch):
+    bar, clock, out = _progress(monkeypatch, total=None)
+    clock.t += 90.0
+    bar.update(2)
+    assert out.getvalue() == "  train_wm: steps 2, 45 s/it\n"
+
+
+def test_silenced_by_environment_or_flag(monkeypatch):
+    bar, clock, out = _progress(monkeypatch, enabled=False)
+    clock.t += 60.0
+    bar.update(5)
+    bar.close()
+    assert bar.mode == "off" and out.getvalue() == "" and bar.n == 5
+    monkeypatch.setenv("PIPELINE_PROGRESS", "0")
+    assert Progress(10, "x").mode == "off"
+    monkeypatch.setenv("PIPELINE_PROGRESS", "1")
+    with Progress(10, "x") as forced:
+        assert forced.mode == "bar"
