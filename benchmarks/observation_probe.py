@@ -5,7 +5,10 @@ For each candidate observation, a small MLP (one hidden layer) is fitted on the 
 (every ``frame_skip``-th control step) of the IND training episodes to regress the object's centre
 and the TCP position (metres, world frame, from the collect artifact's recorded states), and its
 error is measured on held-out IND episodes and on OOD episodes (unseen objects), in cm
-(Euclidean, xyz). Candidates, for every tokenize artifact given:
+(Euclidean, xyz), over all their frames and over their first frames only. The first frames are
+the honest test for the object: later in a demonstration the gripper sits at the object, so the
+TCP alone predicts where the object is; at t = 0 the robot is at rest and only the image can.
+Candidates, for every tokenize artifact given:
 
     codes            the tokenizer's +-1 latent alone (what the policy saw before proprioception)
     codes+proprio    the latent next to the robot's proprioception (stages.common.proprio)
@@ -32,7 +35,7 @@ def frames_of(ds, store, tok, ids: list[str], frame_skip: int) -> dict[str, np.n
     from stages.common.frame_skip import frame_indices
     from stages.common.proprio import proprio_from_state
 
-    codes, prop, obj, tcp = [], [], [], []
+    codes, prop, obj, tcp, first = [], [], [], [], []
     for i in ids:
         st = ds.load_states(i)
         if "obj_pose" not in st:
@@ -42,8 +45,10 @@ def frames_of(ds, store, tok, ids: list[str], frame_skip: int) -> dict[str, np.n
         codes.append(tok.codes(tokens).reshape(len(idx), -1).numpy())
         prop.append(proprio_from_state(st["ee_pose"][idx], st["qpos"][idx]))
         obj.append(st["obj_pose"][idx, :3]), tcp.append(st["ee_pose"][idx, :3])
+        first.append(np.arange(len(idx)) == 0)
     cat = np.concatenate
-    return {"codes": cat(codes).astype(np.float32), "proprio": cat(prop), "obj": cat(obj), "tcp": cat(tcp)}
+    return {"codes": cat(codes).astype(np.float32), "proprio": cat(prop), "obj": cat(obj), "tcp": cat(tcp),
+            "first": cat(first)}
 
 
 def features(d: dict, kind: str) -> np.ndarray:
@@ -70,12 +75,15 @@ def fit_probe(x: np.ndarray, y: np.ndarray, seed: int, steps: int = 3000, hidden
     return net
 
 
-def error_cm(net: nn.Module, x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
-    """Mean Euclidean error (cm) and its normal 95% half-width (frames of one episode are correlated:
-    the half-width is over episodes' frames pooled, so read it as a lower bound)."""
+def errors_cm(net: nn.Module, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Euclidean errors (cm) of the probe on each row."""
     with torch.no_grad():
         pred = net(torch.from_numpy(x)) * net.sd + net.mu
-    e = 100 * np.linalg.norm(pred.numpy() - y, axis=1)
+    return 100 * np.linalg.norm(pred.numpy() - y, axis=1)
+
+
+def mean_ci(e: np.ndarray) -> tuple[float, float]:
+    """Mean and normal 95% half-width (frames of one episode are correlated: read it as a lower bound)."""
     return float(e.mean()), float(1.96 * e.std(ddof=1) / np.sqrt(len(e)))
 
 
@@ -113,18 +121,20 @@ def main() -> None:
             for target in ("obj", "tcp"):
                 net = fit_probe(features(data["train"], kind), data["train"][target], args.seed, args.steps)
                 for sp in ("heldout_ind", "ood"):
-                    m, h = error_cm(net, features(data[sp], kind), data[sp][target])
-                    row[f"{target}/{sp}"] = m
-                    row[f"{target}/{sp}/ci95"] = h
+                    e = errors_cm(net, features(data[sp], kind), data[sp][target])
+                    row[f"{target}/{sp}"], row[f"{target}/{sp}/ci95"] = mean_ci(e)
+                    row[f"{target}/{sp}/first"], row[f"{target}/{sp}/first/ci95"] = mean_ci(e[data[sp]["first"]])
             rows.append(row)
-            print(f"{label:40s} {kind:14s} object IND {row['obj/heldout_ind']:5.2f} cm, OOD {row['obj/ood']:5.2f} cm | "
+            print(f"{label:36s} {kind:14s} object IND {row['obj/heldout_ind']:5.2f} (t=0 {row['obj/heldout_ind/first']:5.2f}) cm, "
+                  f"OOD {row['obj/ood']:5.2f} (t=0 {row['obj/ood/first']:5.2f}) cm | "
                   f"TCP IND {row['tcp/heldout_ind']:5.2f} cm, OOD {row['tcp/ood']:5.2f} cm", flush=True)
         print(f"  ({time.perf_counter() - t0:.0f} s, {len(data['train']['obj'])} training frames, "
               f"{len(data['heldout_ind']['obj'])} held-out IND, {len(data['ood']['obj'])} OOD)", flush=True)
     # what predicting the mean position would score, for scale
     base = data["train"]["obj"].mean(0)
-    print(f"object at its mean training position: IND {100 * np.linalg.norm(data['heldout_ind']['obj'] - base, axis=1).mean():.2f} cm, "
-          f"OOD {100 * np.linalg.norm(data['ood']['obj'] - base, axis=1).mean():.2f} cm")
+    for sp in ("heldout_ind", "ood"):
+        e = 100 * np.linalg.norm(data[sp]["obj"] - base, axis=1)
+        print(f"object at its mean training position, {sp}: {e.mean():.2f} cm (t=0 {e[data[sp]['first']].mean():.2f} cm)")
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1) + "\n")
 

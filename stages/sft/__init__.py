@@ -54,14 +54,22 @@ class Config(BaseModel):
     kinds: list[Literal["optimal", "waypoint_noise", "interpolate", "grasp_disturb"]] = Field(
         ["optimal", *SUBOPTIMAL_KINDS], min_length=1, description="trajectory kinds used as demonstrations (successful ones only)")
     frame_skip: int = Field(4, ge=1, description="control steps per policy step; must equal train_wm.frame_skip (rl checks)")
+    retime_min_move: float = Field(0.0, ge=0, description="re-time demonstrations: each kept step moves the TCP at "
+                                   "least this far (m), 0 = every frame_skip-th frame (stages/sft/data.py)")
+    retime_max_gap: int = Field(12, ge=1, description="re-timing: at most this many control steps between kept frames")
     data_fraction: float = Field(1.0, gt=0, le=1, description="fraction of the demonstration episodes used (learning curves)")
     val_fraction: float = Field(0.1, ge=0, lt=1, description="demonstration episodes held out for early stopping and R^2")
     epochs: int = Field(150, ge=0, description="maximum epochs (0 = an untrained policy)")
     patience: int = Field(20, ge=1, description="stop after this many epochs without a better held-out loss")
+    keep: Literal["best", "last"] = Field("best", description="weights kept: the best held-out epoch (early stopping) "
+                                          "or the last epoch (no early stopping)")
     lr: float = Field(1e-3, gt=0, description="peak AdamW learning rate (cosine decay to 0 over `epochs`)")
     weight_decay: float = Field(1e-4, ge=0)
     batch_size: int = Field(256, ge=1)
     gripper_weight: float = Field(1.0, ge=0, description="weight of the gripper dimension in the normalised loss")
+    rotation_weight: float = Field(1.0, ge=0, description="weight of the three rotation dimensions in the normalised loss "
+                                   "(and in early stopping)")
+    dropout: float = Field(0.0, ge=0, lt=1, description="dropout on the flattened image features")
     features_dim: int = Field(256, ge=8, description="width of the observation features")
     net_arch: int = Field(256, ge=8, description="width of the two hidden layers of the actor and of the critic")
     use_proprio: bool = Field(True, description="the policy reads proprioception (False: the ablation without it)")
@@ -90,7 +98,7 @@ def run(ctx) -> None:
     from stages.common.text_encoder import encode_texts
     from stages.sft.data import load_demo, pairs
     from stages.sft.observation import ObservationFn
-    from stages.sft.policy import POLICY_FILE, behaviour_clone, evaluate_pairs, make_policy, policy_kwargs
+    from stages.sft.policy import POLICY_FILE, behaviour_clone, dim_weights, evaluate_pairs, make_policy, policy_kwargs
     from stages.tokenize.store import TokenStore
     from stages.tokenize.tokenizer import load_tokenizer
 
@@ -121,7 +129,7 @@ def run(ctx) -> None:
     with ctx.progress(len(train_ids) + len(val_ids), "sft: demonstrations", unit="ep") as bar:
         demos = {}
         for i in train_ids + val_ids:
-            demos[i] = load_demo(ds, store, i, cfg.frame_skip)
+            demos[i] = load_demo(ds, store, i, cfg.frame_skip, cfg.retime_min_move, max(cfg.retime_max_gap, cfg.frame_skip))
             bar.update(1)
     train = pairs([demos[i] for i in train_ids], obs_fn)
     val = pairs([demos[i] for i in val_ids], obs_fn) if val_ids else None
@@ -129,18 +137,20 @@ def run(ctx) -> None:
         loc, scale = train[1].mean(0), np.maximum(train[1].std(0), 1e-3)
     else:
         loc, scale = np.zeros(7, np.float32), np.ones(7, np.float32)
-    kwargs = policy_kwargs(loc, scale, features_dim=cfg.features_dim, net_arch=cfg.net_arch, use_proprio=cfg.use_proprio)
+    kwargs = policy_kwargs(loc, scale, features_dim=cfg.features_dim, net_arch=cfg.net_arch, use_proprio=cfg.use_proprio,
+                           dropout=cfg.dropout)
+    weights = dim_weights(cfg.gripper_weight, cfg.rotation_weight)
     policy = make_policy(obs_fn.space, kwargs, cfg.lr).to(ctx.device)
     ctx.log.info("sft: %d train / %d held-out demonstrations (%d / %d pairs), tasks %s, kinds %s",
                  len(train_ids), len(val_ids), len(train[1]), 0 if val is None else len(val[1]), cfg.tasks, cfg.kinds)
     t_fit = time.perf_counter()
     with ctx.progress(cfg.epochs, "sft: epochs", unit="epoch") as bar:
         hist = behaviour_clone(policy, train, val, epochs=cfg.epochs, lr=cfg.lr, weight_decay=cfg.weight_decay,
-                               batch_size=cfg.batch_size, patience=cfg.patience, gripper_weight=cfg.gripper_weight,
-                               seed=cfg.seed, progress=bar)
+                               batch_size=cfg.batch_size, patience=cfg.patience, weights=weights,
+                               seed=cfg.seed, keep=cfg.keep, progress=bar)
     fit_seconds = time.perf_counter() - t_fit
-    held = evaluate_pairs(policy, val if val is not None else train, cfg.gripper_weight)
-    train_eval = evaluate_pairs(policy, train, cfg.gripper_weight)
+    held = evaluate_pairs(policy, val if val is not None else train, weights)
+    train_eval = evaluate_pairs(policy, train, weights)
     noise = np.maximum(cfg.noise_scale * np.asarray(held["residual_std"]), cfg.noise_floor)
     with torch.no_grad():
         policy.log_std.copy_(torch.as_tensor(np.log(noise), dtype=torch.float32))

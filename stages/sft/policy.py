@@ -33,17 +33,19 @@ POLICY_FILE = "sft_policy.pt"
 class LatentExtractor(BaseFeaturesExtractor):
     """codes (B, bits, h, w) -> small CNN; proprio (B, 10) -> MLP; instruction (B, 384) -> linear; concatenated.
 
-    ``use_proprio=False`` zeroes the proprioception input (the ablation without it; same network).
+    ``use_proprio=False`` zeroes the proprioception input (the ablation without it; same network);
+    ``dropout`` applies to the flattened image features (they overfit first: 2,048 of them per frame).
     """
 
-    def __init__(self, observation_space: gym.spaces.Dict, features_dim: int = 256, use_proprio: bool = True):
+    def __init__(self, observation_space: gym.spaces.Dict, features_dim: int = 256, use_proprio: bool = True,
+                 dropout: float = 0.0):
         super().__init__(observation_space, features_dim)
         self.use_proprio = use_proprio
         bits, h, w = observation_space["codes"].shape
         self.cnn = nn.Sequential(
             nn.Conv2d(bits, 64, 3, padding=1), nn.GELU(),
             nn.Conv2d(64, 64, 3, stride=2, padding=1), nn.GELU(),
-            nn.Flatten(),
+            nn.Flatten(), nn.Dropout(dropout),
         )
         cnn_out = 64 * ((h + 1) // 2) * ((w + 1) // 2)
         self.proprio = nn.Sequential(nn.Linear(observation_space["proprio"].shape[0], 64), nn.GELU())
@@ -85,7 +87,11 @@ class TaskPolicy(MultiInputActorCriticPolicy):
         self.action_net = nn.Sequential(self.action_net, Affine(self.action_loc, self.action_scale))
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
-        return {**super()._get_constructor_parameters(), "action_loc": self.action_loc, "action_scale": self.action_scale}
+        # SB3 2.9's ActorCriticPolicy does not save share_features_extractor: loaded without it, a policy with
+        # separate actor / critic extractors comes back with ONE shared extractor that load_state_dict fills
+        # last with the critic's weights, so the actor silently runs on untrained features
+        return {**super()._get_constructor_parameters(), "action_loc": self.action_loc, "action_scale": self.action_scale,
+                "share_features_extractor": self.share_features_extractor}
 
     def mean_action(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """The Gaussian's mean (B, 7) in action units, through the actor only."""
@@ -100,10 +106,11 @@ class TaskPolicy(MultiInputActorCriticPolicy):
 
 
 def policy_kwargs(action_loc, action_scale, *, features_dim: int = 256, net_arch: int = 256,
-                  share_features: bool = False, log_std_init: float = -1.0, use_proprio: bool = True) -> dict:
+                  share_features: bool = False, log_std_init: float = -1.0, use_proprio: bool = True,
+                  dropout: float = 0.0) -> dict:
     """The constructor arguments that define the network: SFT builds it with these and PPO reuses them."""
     return dict(features_extractor_class=LatentExtractor,
-                features_extractor_kwargs={"features_dim": features_dim, "use_proprio": use_proprio},
+                features_extractor_kwargs={"features_dim": features_dim, "use_proprio": use_proprio, "dropout": dropout},
                 net_arch=dict(pi=[net_arch, net_arch], vf=[net_arch, net_arch]), share_features_extractor=share_features,
                 log_std_init=log_std_init, action_loc=[float(v) for v in action_loc],
                 action_scale=[float(v) for v in action_scale])
@@ -115,20 +122,25 @@ def make_policy(observation_space: gym.spaces.Dict, kwargs: dict, lr: float = 1e
     return TaskPolicy(observation_space, action_space, lambda _: lr, **kwargs)
 
 
-def _loss(policy: TaskPolicy, obs: dict[str, torch.Tensor], target: torch.Tensor, gripper_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(mean loss, per-dimension squared error (B, 7) in normalised units) of the policy mean vs targets."""
+def dim_weights(gripper_weight: float = 1.0, rotation_weight: float = 1.0) -> torch.Tensor:
+    """(7,) loss weights: translation 1, rotation ``rotation_weight``, gripper ``gripper_weight``."""
+    return torch.tensor([1.0, 1.0, 1.0, rotation_weight, rotation_weight, rotation_weight, gripper_weight])
+
+
+def _loss(policy: TaskPolicy, obs: dict[str, torch.Tensor], target: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(weighted mean loss, per-dimension squared error (B, 7) in normalised units) of the policy mean vs targets."""
     err = (policy.normalized(policy.mean_action(obs)) - policy.normalized(target)) ** 2  # (B, 7)
-    weights = torch.ones(7, device=err.device)
-    weights[GRIPPER] = gripper_weight
+    weights = weights.to(err.device)
     return (err * weights).sum(1).mean() / weights.sum(), err
 
 
 def behaviour_clone(policy: TaskPolicy, train: tuple[dict, np.ndarray], val: tuple[dict, np.ndarray] | None, *,
-                    epochs: int, lr: float, weight_decay: float, batch_size: int, patience: int, gripper_weight: float,
-                    seed: int, progress=None) -> dict:
+                    epochs: int, lr: float, weight_decay: float, batch_size: int, patience: int, weights: torch.Tensor,
+                    seed: int, keep: str = "best", progress=None) -> dict:
     """Regress the policy's mean action on (obs, action) pairs with AdamW and a cosine schedule;
     keep the weights of the best held-out epoch (early stopping after ``patience`` epochs without
-    improvement). obs: {"codes": (M, bits, h, w), "proprio": (M, 10), "instruction": (M, 384)},
+    improvement); ``keep="last"`` keeps the final weights and never stops early (the held-out loss is
+    still recorded). obs: {"codes": (M, bits, h, w), "proprio": (M, 10), "instruction": (M, 384)},
     actions (M, 7). Returns the loss history and the best epoch.
     """
     dev = policy.device
@@ -149,7 +161,7 @@ def behaviour_clone(policy: TaskPolicy, train: tuple[dict, np.ndarray], val: tup
         total = 0.0
         for i in range(0, len(y), batch_size):
             idx = perm[i: i + batch_size]
-            loss, _ = _loss(policy, {k: v[idx] for k, v in x.items()}, y[idx], gripper_weight)
+            loss, _ = _loss(policy, {k: v[idx] for k, v in x.items()}, y[idx], weights)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -161,24 +173,25 @@ def behaviour_clone(policy: TaskPolicy, train: tuple[dict, np.ndarray], val: tup
             progress.update(1)
         if val is None:
             continue
-        v = evaluate_pairs(policy, val, gripper_weight)["loss"]
+        v = evaluate_pairs(policy, val, weights)["loss"]
         hist["val"].append(v)
         if v < best:
             best, best_state, waited, hist["best_epoch"] = v, copy.deepcopy(policy.state_dict()), 0, epoch + 1
         else:
             waited += 1
-            if waited >= patience:
+            if waited >= patience and keep == "best":
                 break
-    if best_state is not None:
+    if best_state is not None and keep == "best":
         policy.load_state_dict(best_state)
     policy.set_training_mode(False)
     return hist
 
 
 @torch.no_grad()
-def evaluate_pairs(policy: TaskPolicy, pairs: tuple[dict, np.ndarray], gripper_weight: float = 1.0,
+def evaluate_pairs(policy: TaskPolicy, pairs: tuple[dict, np.ndarray], weights: torch.Tensor | None = None,
                    batch_size: int = 1024) -> dict:
-    """Held-out loss, per-dimension R^2 and residual std (action units), gripper sign accuracy."""
+    """Weighted loss, per-dimension R^2 and residual std (action units), gripper sign accuracy."""
+    weights = dim_weights() if weights is None else weights
     policy.set_training_mode(False)
     obs, actions = pairs
     dev = policy.device
@@ -187,12 +200,13 @@ def evaluate_pairs(policy: TaskPolicy, pairs: tuple[dict, np.ndarray], gripper_w
         means.append(policy.mean_action({k: torch.as_tensor(v[i: i + batch_size], device=dev) for k, v in obs.items()}).cpu())
     pred = torch.cat(means).numpy()  # (M, 7)
     target = np.asarray(actions, np.float32)
-    loss, _ = _loss(policy, {k: torch.as_tensor(v, device=dev) for k, v in obs.items()},
-                    torch.as_tensor(target, device=dev), gripper_weight) if len(target) <= 20000 else (torch.tensor(float("nan")), None)
     resid = pred - target
+    z = resid / np.asarray(policy.action_net[-1].scale.cpu())  # normalised residuals (M, 7)
+    w = weights.numpy()
+    loss = float(((z ** 2).mean(0) * w).sum() / w.sum())
     var = target.var(0)
     r2 = 1.0 - (resid ** 2).mean(0) / np.where(var > 0, var, np.nan)
-    return {"loss": float(loss), "r2": [float(v) for v in r2], "residual_std": [float(v) for v in resid.std(0)],
+    return {"loss": loss, "r2": [float(v) for v in r2], "residual_std": [float(v) for v in resid.std(0)],
             "gripper_sign_accuracy": float(np.mean(np.sign(pred[:, GRIPPER] + 1e-12) == np.sign(target[:, GRIPPER])))}
 
 
