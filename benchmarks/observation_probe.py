@@ -1,14 +1,16 @@
 """Does the policy's observation carry the task? A probe that reads the object's and the TCP's
 position from it.
 
-For each candidate observation, a small MLP (one hidden layer) is fitted on the world-model frames
+For each candidate observation, a small regressor is fitted on the world-model frames
 (every ``frame_skip``-th control step) of the IND training episodes to regress the object's centre
 and the TCP position (metres, world frame, from the collect artifact's recorded states), and its
 error is measured on held-out IND episodes and on OOD episodes (unseen objects), in cm
 (Euclidean, xyz), over all their frames and over their first frames only. The first frames are
 the honest test for the object: later in a demonstration the gripper sits at the object, so the
 TCP alone predicts where the object is; at t = 0 the robot is at rest and only the image can.
-Candidates, for every tokenize artifact given:
+Two regressors: an MLP with one hidden layer on the flattened input, and (for inputs with the
+latent) the policy's own image path, a two-layer CNN over the token grid with dropout 0.3, whose
+error is what the policy's architecture can read. Candidates, for every tokenize artifact given:
 
     codes            the tokenizer's +-1 latent alone (what the policy saw before proprioception)
     codes+proprio    the latent next to the robot's proprioception (stages.common.proprio)
@@ -56,13 +58,35 @@ def features(d: dict, kind: str) -> np.ndarray:
             "codes+proprio": np.concatenate([d["codes"], d["proprio"]], 1)}[kind]
 
 
-def fit_probe(x: np.ndarray, y: np.ndarray, seed: int, steps: int = 3000, hidden: int = 256) -> nn.Module:
-    """An MLP x -> y (standardised targets), AdamW, minibatches of 256."""
+class GridProbe(nn.Module):
+    """The policy's image path (stages.sft.policy.LatentExtractor's CNN) on the latent part of x, + the rest."""
+
+    def __init__(self, bits: int, grid: tuple[int, int], extra: int, out: int):
+        super().__init__()
+        self.shape, self.n = (bits, *grid), bits * grid[0] * grid[1]
+        self.cnn = nn.Sequential(nn.Conv2d(bits, 64, 3, padding=1), nn.GELU(), nn.Conv2d(64, 64, 3, stride=2, padding=1),
+                                 nn.GELU(), nn.Flatten(), nn.Dropout(0.3))
+        flat = 64 * ((grid[0] + 1) // 2) * ((grid[1] + 1) // 2)
+        self.head = nn.Sequential(nn.Linear(flat + extra, 256), nn.GELU(), nn.Linear(256, out))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        img = self.cnn(x[:, : self.n].reshape(len(x), *self.shape))
+        return self.head(torch.cat([img, x[:, self.n:]], 1))
+
+
+def fit_probe(x: np.ndarray, y: np.ndarray, seed: int, steps: int = 3000, hidden: int = 256,
+              grid: tuple[int, int, int] | None = None) -> nn.Module:
+    """A regressor x -> y (standardised targets), AdamW, minibatches of 256: an MLP, or ``GridProbe``
+    when ``grid`` = (bits, h, w) says the first bits*h*w inputs are a token grid's codes."""
     torch.manual_seed(seed)
     x_t, y_t = torch.from_numpy(x), torch.from_numpy(y.astype(np.float32))
     mu, sd = y_t.mean(0), y_t.std(0).clamp_min(1e-6)
-    net = nn.Sequential(nn.Linear(x.shape[1], hidden), nn.GELU(), nn.Linear(hidden, y.shape[1]))
-    opt = torch.optim.AdamW(net.parameters(), lr=1e-3, weight_decay=1e-3)
+    if grid is None:
+        net = nn.Sequential(nn.Linear(x.shape[1], hidden), nn.GELU(), nn.Linear(hidden, y.shape[1]))
+    else:
+        bits, h, w = grid
+        net = GridProbe(bits, (h, w), x.shape[1] - bits * h * w, y.shape[1])
+    opt = torch.optim.AdamW(net.parameters(), lr=1e-3, weight_decay=1e-2 if grid else 1e-3)
     gen = torch.Generator().manual_seed(seed)
     for _ in range(steps):
         idx = torch.randint(0, len(x_t), (256,), generator=gen)
@@ -116,16 +140,17 @@ def main() -> None:
         data = {name: frames_of(ds, store, tok, ids, args.frame_skip)
                 for name, ids in (("train", train_ids), ("heldout_ind", split["heldout"]), ("ood", ood_ids))}
         label = f"{tok_dir.name[:12]} grid {list(tok.grid)} x {tok.bits} bits"
-        for kind in ("codes", "codes+proprio", "proprio"):
-            row = {"tokenizer": label, "observation": kind, "train_frames": len(data["train"]["obj"])}
+        for kind, probe in (("codes", "mlp"), ("codes", "cnn"), ("codes+proprio", "cnn"), ("proprio", "mlp")):
+            row = {"tokenizer": label, "observation": kind, "probe": probe, "train_frames": len(data["train"]["obj"])}
+            grid = (tok.bits, *tok.grid) if probe == "cnn" else None
             for target in ("obj", "tcp"):
-                net = fit_probe(features(data["train"], kind), data["train"][target], args.seed, args.steps)
+                net = fit_probe(features(data["train"], kind), data["train"][target], args.seed, args.steps, grid=grid)
                 for sp in ("heldout_ind", "ood"):
                     e = errors_cm(net, features(data[sp], kind), data[sp][target])
                     row[f"{target}/{sp}"], row[f"{target}/{sp}/ci95"] = mean_ci(e)
                     row[f"{target}/{sp}/first"], row[f"{target}/{sp}/first/ci95"] = mean_ci(e[data[sp]["first"]])
             rows.append(row)
-            print(f"{label:36s} {kind:14s} object IND {row['obj/heldout_ind']:5.2f} (t=0 {row['obj/heldout_ind/first']:5.2f}) cm, "
+            print(f"{label:36s} {kind:14s} {probe}  object IND {row['obj/heldout_ind']:5.2f} (t=0 {row['obj/heldout_ind/first']:5.2f}) cm, "
                   f"OOD {row['obj/ood']:5.2f} (t=0 {row['obj/ood/first']:5.2f}) cm | "
                   f"TCP IND {row['tcp/heldout_ind']:5.2f} cm, OOD {row['tcp/ood']:5.2f} cm", flush=True)
         print(f"  ({time.perf_counter() - t0:.0f} s, {len(data['train']['obj'])} training frames, "

@@ -6,7 +6,6 @@ one of its initial frames).
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,14 +39,3 @@ def list_environments(collect_dir: Path, tasks: list[str] | None = None) -> list
         if unknown:
             raise ValueError(f"tasks {unknown} have no episodes in {collect_dir}")
     return [envs[k] for k in sorted(envs)]
-
-
-def training_episode_ids(train_wm_dir: Path) -> set[str]:
-    """IND episodes the world models were trained on (``split.json`` of the train_wm artifact)."""
-    return set(json.loads((Path(train_wm_dir) / "split.json").read_text())["train"])
-
-
-def heldout_episode_ids(train_wm_dir: Path) -> dict[str, list[str]]:
-    """Held-out IND and OOD episode ids of the train_wm split: ``{"ind": [...], "ood": [...]}``."""
-    split = json.loads((Path(train_wm_dir) / "split.json").read_text())
-    return {"ind": list(split["heldout"]), "ood": list(split["ood"])}

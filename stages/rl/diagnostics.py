@@ -7,7 +7,6 @@ the rank correlation between a module's per-frame reward and normalised time t/T
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from scipy.stats import spearmanr
@@ -24,11 +23,6 @@ def progress_correlation(reward: np.ndarray, progress: np.ndarray, episode: np.n
             continue
         rhos.append(spearmanr(reward[m], progress[m]).statistic)
     return float(np.mean(rhos)) if rhos else float("nan")
-
-
-def module_rewards(fs: FrameSet, modules: dict[str, Callable[[FrameSet], np.ndarray]]) -> dict[str, np.ndarray]:
-    """Per-frame reward (M,) of each module on the frame set."""
-    return {name: np.asarray(fn(fs), dtype=np.float64) for name, fn in modules.items()}
 
 
 def binned_curve(reward: np.ndarray, progress: np.ndarray, bins: int = 10) -> np.ndarray:

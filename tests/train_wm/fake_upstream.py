@@ -36,6 +36,7 @@ class Ep:
     wrist: np.ndarray
     action: np.ndarray  # (T, 7)
     success: np.ndarray  # (T+1,) bool
+    pos: np.ndarray  # (T+1, 2) the square's position, which the fake robot's TCP follows
 
 
 def _render(x: float, y: float, color) -> np.ndarray:
@@ -67,11 +68,22 @@ class FakeDataset:
             success = pos[:, 0] > 0.6
             eid = f"ep{i:03d}"
             instr = ["push the red cube", "pull the red cube"][i % 2] if split == "ind" else "push the blue cube"
-            self._eps[eid] = Ep(third, wrist, act, success)
+            self._eps[eid] = Ep(third, wrist, act, success, pos)
             self.episodes.append(Meta(eid, "push", instr, f"s{i}", split, "optimal", bool(success[-1]), T))
 
     def load(self, episode_id: str) -> Ep:
         return self._eps[episode_id]
+
+    def load_states(self, episode_id: str) -> dict:
+        """The real Dataset's image-free view: a TCP that follows the square, fingers open."""
+        ep = self._eps[episode_id]
+        n = len(ep.pos)
+        ee = np.zeros((n, 7), np.float32)
+        ee[:, :2], ee[:, 2], ee[:, 4] = 0.3 * ep.pos, 0.15, 1.0
+        qpos = np.zeros((n, 9), np.float32)
+        qpos[:, 7:] = 0.04
+        return {"ee_pose": ee, "qpos": qpos, "success": ep.success, "action": ep.action,
+                "reward": np.zeros(len(ep.action), np.float32)}
 
 
 def install_fake_collect(monkeypatch) -> None:

@@ -1,4 +1,5 @@
 """World-model network and rollout: conditioning, exact KV cache, save/load, action checks, learning."""
+import numpy as np
 import pytest
 import torch
 
@@ -166,7 +167,7 @@ def test_tiny_training_reduces_loss():
         for a in acts:
             frames.append((frames[-1] + (1 if a[0] > 0 else 2)) % V)
         eps.append(Episode(f"e{i}", "push", "ind", torch.stack(frames).numpy(), acts.numpy(),
-                           (torch.arange(13) > 8).float().numpy()))
+                           (torch.arange(13) > 8).float().numpy(), np.zeros((13, 10), np.float32)))
     net = WorldModelNet(WMSpec(kind="action", vocab_size=V, grid=GRID, dim=32, depth=1, heads=2, window=4))
     net.set_action_stats(torch.cat([torch.from_numpy(e.actions) for e in eps]))
     sampler = ClipSampler(eps, 4, {"push": torch.zeros(384).numpy()}, seed=0)

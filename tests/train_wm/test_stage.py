@@ -9,7 +9,7 @@ from stages.train_wm import Config, run
 from stages.train_wm.rollout import load_world_model
 from tests.train_wm.fake_upstream import FakeDataset, install_fake_collect, make_tokenize_artifact
 
-TINY = dict(dim=32, depth=1, heads=2, head_depth=1, window=4, control_tokens=2, action_steps=30, text_steps=20, batch_size=4,
+TINY = dict(dim=32, depth=1, heads=2, head_depth=1, window=4, control_tokens=2, action_steps=30, text_steps=20, batch_size=4, proprio_steps=30,
             eval_episodes=2, eval_starts=1, frame_skip=2)
 
 
@@ -29,7 +29,8 @@ def test_stage_writes_checkpoints_metrics_and_figure(tmp_path, monkeypatch):
     ctx = StageContext(stage="train_wm", config=Config(**TINY), inputs={"collect": tmp_path / "collect", "tokenize": tok_dir},
                        out=out, seed=0)
     run(ctx)
-    for name in ("action_wm.pt", "text_wm.pt", "text_embeddings.json", "split.json", "metrics.json", "frames.png"):
+    for name in ("action_wm.pt", "text_wm.pt", "proprio_head.pt", "text_embeddings.json", "split.json", "metrics.json",
+                 "frames.png"):
         assert (out / name).is_file(), name
     m = json.loads((out / "metrics.json").read_text())
     assert not _finite(m), _finite(m)
@@ -42,6 +43,11 @@ def test_stage_writes_checkpoints_metrics_and_figure(tmp_path, monkeypatch):
         assert m[f"action_wm/{split}/extreme_actions/clip_fraction"] > 0.9
         assert 0.0 <= m[f"action_wm/{split}/done/brier"] <= 1.0
     assert (m["action_wm/train_steps"], m["text_wm/train_steps"]) == (30, 20)  # separate budgets
+    for split in ("heldout_ind", "ood"):  # the proprioception head, open loop, next to copy-last
+        assert m[f"proprio/{split}/h1/tcp_error_cm/head"] >= 0 and m[f"proprio/{split}/h15/tcp_error_cm/copy_last"] > 0
+    action_wm = load_world_model(out, "action")
+    nxt = action_wm.next_proprio(torch.zeros(2, 10), torch.zeros(2, 7), torch.zeros(2, 8, 8, dtype=torch.long))
+    assert nxt.shape == (2, 10) and torch.isfinite(nxt).all()
     assert m["action_wm/history"][-1]["ce"] < m["action_wm/history"][0]["ce"]
     wm = load_world_model(out, "text")
     roll = wm.rollout(2)

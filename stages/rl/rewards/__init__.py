@@ -8,7 +8,6 @@ from stages.rl.rewards.heads import EmbeddingHead, EmbeddingReward, ProxyCNN, Pr
 from stages.rl.rewards.wm import GoalDistance, WMReward
 
 REWARDS = ("wm", "rule", "embedding", "proxy")
-WM_REWARDS = ("wm", "embedding", "proxy")
 
-__all__ = ["REWARDS", "WM_REWARDS", "RewardModule", "StepBatch", "WMReward", "GoalDistance", "EmbeddingHead",
+__all__ = ["REWARDS", "RewardModule", "StepBatch", "WMReward", "GoalDistance", "EmbeddingHead",
            "EmbeddingReward", "ProxyCNN", "ProxyReward"]
