@@ -10,6 +10,7 @@ Inputs:
 
 Outputs:
     ``scenes.json``      the scene catalog and its IND/OOD split;
+    ``sim.json``         image size, robot mesh, controller: every later simulator reads them here;
     ``shards/*.mcap``    episodes (both camera views as PNG CompressedImage, actions, EE pose,
                          joints, reward, success); schema in docs/mcap_schema.md;
     ``episodes.jsonl``   the episode index (``dataset.EpisodeMeta`` per line);
@@ -115,13 +116,14 @@ def _rate(num: int, den: int) -> float | None:
 
 def run(ctx: StageContext) -> None:
     from stages.collect.catalog import write_scenes_json
-    from stages.collect.dataset import SHARD_DIR, EpisodeMeta, write_index
+    from stages.collect.dataset import SHARD_DIR, EpisodeMeta, SimFacts, write_index, write_sim_facts
     from stages.collect.worker import collect_shard
 
     cfg: Config = ctx.config
     t0 = time.perf_counter()
     scenes = scene_catalog(cfg)
     write_scenes_json(scenes, ctx.out / "scenes.json")
+    write_sim_facts(ctx.out, SimFacts(image_size=cfg.image_size, robot_mesh=cfg.robot_mesh))
     shard_dir = ctx.out / SHARD_DIR
     shard_dir.mkdir(parents=True, exist_ok=True)
     jobs = plan_jobs(cfg, scenes, shard_dir)

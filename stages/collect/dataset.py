@@ -22,6 +22,29 @@ from stages.collect import mcap_io
 
 INDEX_FILE = "episodes.jsonl"
 SHARD_DIR = "shards"
+SIM_FACTS = "sim.json"
+
+
+@dataclass(frozen=True)
+class SimFacts:
+    """How the collect stage rendered and controlled the simulator: every later simulator must match."""
+
+    image_size: int
+    robot_mesh: str
+    control_mode: str = "pd_ee_delta_pose"
+
+
+def write_sim_facts(out_dir: Path, facts: SimFacts) -> None:
+    (Path(out_dir) / SIM_FACTS).write_text(json.dumps(asdict(facts), indent=1) + "\n")
+
+
+def read_sim_facts(collect_dir: str | Path) -> SimFacts:
+    """The collect artifact's ``sim.json``, with a clear error for artifacts written before it existed."""
+    path = Path(collect_dir) / SIM_FACTS
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: the collect artifact predates sim.json; rerun collect "
+                                "(python -m pipeline run --force collect)")
+    return SimFacts(**json.loads(path.read_text()))
 
 
 @dataclass(frozen=True)

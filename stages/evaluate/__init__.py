@@ -56,8 +56,9 @@ class Config(BaseModel):
     snapshot_episodes: int = Field(4, ge=0, description="episodes per (snapshot, split) for success vs training time")
     extra_scenes: list[ExtraScene] = Field([], description="more OOD scenes (a list, or a path to a YAML list)")
     videos: bool = Field(True, description="GIF of one IND and one OOD episode per policy")
-    image_size: int = Field(64, ge=16, description="camera size; must match collect's")
-    robot_mesh: Literal["lowpoly", "stock"] = "lowpoly"
+    image_size: int | None = Field(None, ge=16, description="camera size; None = collect's (sim.json), "
+                                   "any other value must equal it")
+    robot_mesh: Literal["lowpoly", "stock"] | None = Field(None, description="None = collect's; any other value must equal it")
 
     @field_validator("extra_scenes", mode="before")
     @classmethod
@@ -73,9 +74,13 @@ def run(ctx) -> None:
     from stages.evaluate.episodes import close_sims, run_job
     from stages.evaluate.writeup import write_everything
 
+    from stages.sft import read_policy_json
+
     cfg: Config = ctx.config
     rl_dir = ctx.input("rl")
-    rl_metrics = json.loads((rl_dir / "metrics.json").read_text())
+    policy = read_policy_json(ctx.input("sft"))  # the facts the sft stage fixed: tasks, control steps per policy step
+    rl_metrics = {**json.loads((rl_dir / "metrics.json").read_text()), "tasks": policy["tasks"],
+                  "frame_skip": int(policy["frame_skip"])}
     jobs = build_jobs(ctx, cfg, rl_metrics)
     snaps = snapshot_jobs(ctx, cfg, rl_metrics)
     ctx.log.info("evaluate: %d jobs (%d episodes) + %d snapshot jobs", len(jobs), sum(len(j.seeds) for j in jobs), len(snaps))

@@ -39,6 +39,18 @@ def policy_paths(ctx) -> dict[str, Path]:
     return {"sft": ctx.input("sft") / POLICY_FILE, "ppo": ctx.input("rl") / "policy.zip"}
 
 
+def sim_settings(ctx, cfg) -> tuple[int, str]:
+    """(image size, robot mesh): collect's (sim.json); evaluate's own values, when set, must agree."""
+    from stages.collect.dataset import read_sim_facts
+
+    facts = read_sim_facts(ctx.input("collect"))
+    for name, mine, theirs in (("image_size", cfg.image_size, facts.image_size), ("robot_mesh", cfg.robot_mesh, facts.robot_mesh)):
+        if mine is not None and mine != theirs:
+            raise ValueError(f"evaluate.{name} = {mine!r} but collect rendered with {name} = {theirs!r}: the policy "
+                             f"would see frames unlike its training data; unset evaluate.{name} or set it to {theirs!r}")
+    return facts.image_size, facts.robot_mesh
+
+
 def _spread(policy: str, path: Path, task: str, split: str, scenes: list[dict], n: int, seed0: int, ctx, cfg,
             text: dict, record: bool, repeat: int) -> list[Job]:
     """``n`` episodes round-robin over ``scenes``, one Job per scene; ``repeat`` = control steps per policy step."""
@@ -46,10 +58,11 @@ def _spread(policy: str, path: Path, task: str, split: str, scenes: list[dict], 
     for i in range(n):
         seeds.setdefault(scenes[i % len(scenes)]["scene_id"], []).append(seed0 + i)
     by_id = {s["scene_id"]: s for s in scenes}
+    image_size, robot_mesh = sim_settings(ctx, cfg)
     jobs = []
     for k, (sid, ss) in enumerate(sorted(seeds.items())):
         jobs.append(Job(policy, str(path), str(ctx.input("tokenize")), text, task, by_id[sid], split, ss,
-                        cfg.max_steps, repeat, cfg.image_size, cfg.robot_mesh,
+                        cfg.max_steps, repeat, image_size, robot_mesh,
                         record=[ss[0]] if record and k == 0 else [], device=ctx.device))
     return jobs
 
@@ -73,7 +86,7 @@ def build_jobs(ctx, cfg, rl_metrics: dict) -> list[Job]:
                 recorded = recorded or record
                 seed0 = SEED_BASE + cfg.seed * 100_000 + ti * 10_000 + ("ind", "ood", "extra").index(split) * 1_000
                 jobs += _spread(policy, path, task, split, scenes[(task, split)], cfg.episodes, seed0, ctx, cfg, text, record,
-                                int(rl_metrics.get("frame_skip", 1)))
+                                int(rl_metrics["frame_skip"]))
     return jobs
 
 
@@ -96,5 +109,5 @@ def snapshot_jobs(ctx, cfg, rl_metrics: dict) -> list[Job]:
                     seed0 = SEED_BASE + 50_000 + cfg.seed * 100_000 + ti * 1_000 + (split == "ood") * 500
                     jobs += _spread(f"ppo@{snap['timesteps']}", ctx.input("rl") / snap["path"], task, split,
                                     scenes[(task, split)], n, seed0, ctx, cfg, text, False,
-                                    int(rl_metrics.get("frame_skip", 1)))
+                                    int(rl_metrics["frame_skip"]))
     return jobs

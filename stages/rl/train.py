@@ -136,12 +136,15 @@ def _sim_vec_env(ctx, cfg, inp, envs):
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     from stages.collect.catalog import read_scenes_json
+    from stages.collect.dataset import read_sim_facts
     from stages.rl.sim_env import SimSpec, SimTaskEnv
 
     scenes = read_scenes_json(ctx.input("collect") / "scenes.json")
+    facts = read_sim_facts(ctx.input("collect"))  # render and control as the demonstrations were recorded
     specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction, inp.goal_index[e.env_id]) for e in envs]
     n = min(cfg.sim_envs, len(specs))
     groups = [specs[i::n] for i in range(n)]
     return DummyVecEnv([lambda g=g, i=i: SimTaskEnv(g, inp.obs_fn, max_steps=cfg.max_episode_steps, seed=cfg.seed + i,
-                                                      action_repeat=inp.frame_skip)
+                                                      action_repeat=inp.frame_skip, image_size=facts.image_size,
+                                                      robot_mesh=facts.robot_mesh)
                         for i, g in enumerate(groups)])
