@@ -33,8 +33,7 @@ def tokenizer():
 
     c = TokConfig()
     torch.manual_seed(0)
-    return Tokenizer(TokenizerNet(ModelSpec(image_size=c.image_size, bits=c.bits, channels=tuple(c.channels),
-                                            res_blocks=c.res_blocks)))
+    return Tokenizer(TokenizerNet(c.spec()))  # the small profile's architecture (one grid per view)
 
 
 def action_wm(tok):
