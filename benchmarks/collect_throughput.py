@@ -19,7 +19,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.collect import TASK_NAMES, Config, plan_jobs, scene_catalog  # noqa: E402
+from stages.collect import Config, plan_jobs, scene_catalog  # noqa: E402
+from stages.collect.tasks import TASKS  # noqa: E402
 
 
 def _warm_up(args) -> float:
@@ -30,7 +31,7 @@ def _warm_up(args) -> float:
     from stages.collect.worker import _sim
 
     t0 = time.perf_counter()
-    for task in TASK_NAMES:
+    for task in TASKS:
         _sim(task, image_size, robot_mesh, 400)
     return time.perf_counter() - t0
 

@@ -177,6 +177,8 @@ def cmd_show(project: Project, args) -> int:
     print(f"{node.stage} {node.key}\npath: {look.path}\nstate: {look.state}{(' - ' + look.problem) if look.problem else ''}")
     if look.manifest is not None:
         print(json.dumps(look.manifest, indent=2, sort_keys=True))
+    if look.path is not None and (Path(look.path) / "tensorboard").is_dir():
+        print(f"training curves: tensorboard --logdir {Path(look.path) / 'tensorboard'}")
     if args.verify:
         problems = project.store.verify(node.stage, node.key)
         print("verify: ok" if not problems else "verify: FAILED\n  " + "\n  ".join(problems))

@@ -36,13 +36,14 @@ def main() -> None:
     held = set(json.loads((tok_dir / "split.json").read_text())["heldout"])
     train, heldout, ood = split_episodes(eps, held, cfg.holdout_fraction, cfg.seed)
     store = TokenStore(tok_dir)
-    net = WorldModelNet(W._spec(cfg, "action", 2**store.bits, tuple(store.grid)))
+    net = WorldModelNet(W.model_spec(cfg, "action", 2**store.bits, tuple(store.grid)))
     net.set_action_stats(torch.from_numpy(np.concatenate([e.actions for e in train])))
     sampler = ClipSampler(train, cfg.window, {e.instruction: np.zeros(384, np.float32) for e in eps}, cfg.seed)
     t0 = time.time()
     r = train_world_model(net, sampler, steps=cfg.action_steps, batch_size=cfg.batch_size, lr=cfg.lr,
                           weight_decay=cfg.weight_decay, done_weight=cfg.done_weight, done_kind=cfg.done_loss,
-                          seed=cfg.seed, device="cpu", changed_weight=cfg.changed_weight)
+                          seed=cfg.seed, device="cpu", changed_weight=cfg.changed_weight,
+                          done_balance=cfg.done_balance)
     print(overrides, f"{len(train)} train episodes, train s {time.time() - t0:.0f}",
           {k: round(v, 3) for k, v in r["final"].items()}, flush=True)
     wm = WorldModel(net, cfg.decode_steps, 0.0)

@@ -2,7 +2,8 @@
 
 Four tabletop tasks (pick & place, push, pull, move to aim) in scenes built from primitives
 (object x container x table, ``catalog.py``); optimal trajectories through the essential waypoints
-and the paper's three suboptimal kinds (``plans.py``), planned by MPLib and recorded as delta-EE
+the paper's three suboptimal kinds and near-miss failures (``plans.py``; labelled done-head
+negatives, never demonstrations), planned by MPLib and recorded as delta-EE
 actions under ``pd_ee_delta_pose`` (``execute.py``), one shard per worker task (``worker.py``).
 
 Inputs:
@@ -22,9 +23,9 @@ Key includes:
     mesh, retry and step limits, seed. Not ``jobs`` (parallelism never changes the data).
 
 Toy profile:
-    all four tasks on 1 IND and 1 OOD scene, one optimal + one suboptimal trajectory per scene and
-    task (16 episodes), every successful optimal episode replayed open-loop; ~1.5 min on 2 cores.
-    The defaults (``small``): 24 IND + 8 OOD scenes, 640 episodes (docs/collect.md says why).
+    all four tasks on 1 IND and 1 OOD scene, one optimal + one suboptimal + one near-miss trajectory
+    per scene and task (24 episodes), every successful optimal episode replayed open-loop; ~2 min on
+    2 cores. The defaults (``small``): 24 IND + 8 OOD scenes, 768 episodes (docs/collect.md says why).
 """
 from __future__ import annotations
 
@@ -36,16 +37,16 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.context import StageContext
+from stages.collect.plans import KINDS, SUBOPTIMAL_KINDS
+from stages.collect.tasks import TASKS, Task
 
-TASK_NAMES = ("pick_place", "push", "pull", "move_to_aim")
-SUBOPTIMAL_KINDS = ("waypoint_noise", "interpolate", "grasp_disturb")
 
 
 class Config(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     seed: int = Field(0, description="seed for scene sampling, initial states and plan perturbations")
-    tasks: tuple[Literal["pick_place", "push", "pull", "move_to_aim"], ...] = Field(TASK_NAMES, description="tasks to collect")
+    tasks: tuple[Task, ...] = Field(TASKS, description="tasks to collect")
     image_size: int = Field(64, ge=16, le=512, description="side of both square camera images (pixels)")
     robot_mesh: Literal["lowpoly", "stock"] = Field("lowpoly", description="Panda visual meshes: lowpoly (~4x faster rendering) or stock")
     shapes: tuple[str, ...] = Field(("cube", "cylinder", "sphere", "capsule"), description="object shapes of the catalog")
@@ -67,6 +68,8 @@ class Config(BaseModel):
     suboptimal_ratio: float = Field(1.0, ge=0, description="suboptimal:optimal trajectory ratio (paper 1:1); kinds cycle")
     max_steps: int = Field(400, ge=50, description="step limit of one trajectory")
     max_retries: int = Field(3, ge=0, description="new seeds tried after a failed plan or an unsuccessful execution")
+    near_miss_per_scene: int = Field(1, ge=0, description="near-miss failures per scene and task (IND and OOD): "
+                                     "labelled done-head negatives, never demonstrations (plans.near_miss_plan)")
     keep_failed: bool = Field(False, description="also write episodes whose execution did not succeed")
     replay_fraction: float = Field(0.1, ge=0, le=1, description="fraction of successful optimal episodes replayed open-loop to verify actions")
     episodes_per_shard: int = Field(8, ge=1, description="episodes per MCAP shard (one worker task)")
@@ -93,7 +96,8 @@ def plan_jobs(cfg: Config, scenes, shard_dir) -> list[dict]:
         episodes = []
         for scene, n_opt in [(s, cfg.optimal_per_scene) for s in ind] + [(s, cfg.ood_optimal_per_scene) for s in ood]:
             n_sub = int(round(n_opt * cfg.suboptimal_ratio))
-            kinds = ["optimal"] * n_opt + [SUBOPTIMAL_KINDS[(n + j) % 3] for j in range(n_sub)]
+            kinds = (["optimal"] * n_opt + [SUBOPTIMAL_KINDS[(n + j) % 3] for j in range(n_sub)]
+                     + ["near_miss"] * cfg.near_miss_per_scene)
             for j, kind in enumerate(kinds):
                 episodes.append(dict(
                     episode_id=f"{task}.{scene.scene_id}.{kind}.{j}", scene=scene.to_dict(), kind=kind,
@@ -152,6 +156,7 @@ def run(ctx: StageContext) -> None:
             episodes=tot.get("written", 0), frames=tot.get("frames", 0), attempts=tot.get("attempts", 0),
             retries=tot.get("retries", 0), dropped=tot.get("dropped", 0),
             plan_failures=tot.get("plan_failures", 0), exec_failures=tot.get("exec_failures", 0),
+            near_miss_unintended_successes=tot.get("unintended_successes", 0),
             planner_success_rate=_rate(tot.get("attempts", 0) - tot.get("plan_failures", 0), tot.get("attempts", 0)),
             execution_success_rate=_rate(tot.get("attempts", 0) - tot.get("plan_failures", 0) - tot.get("exec_failures", 0),
                                          tot.get("attempts", 0) - tot.get("plan_failures", 0)),
@@ -163,9 +168,10 @@ def run(ctx: StageContext) -> None:
     metrics = dict(
         episodes=len(metas), episodes_planned=n_planned, frames=tot("frames"),
         episodes_by_split={s: sum(m.split == s for m in metas) for s in ("ind", "ood")},
-        episodes_by_kind={k: sum(m.kind == k for m in metas) for k in ("optimal", *SUBOPTIMAL_KINDS)},
+        episodes_by_kind={k: sum(m.kind == k for m in metas) for k in KINDS},
         scenes=len(scenes), scenes_collected=len({m.scene_id for m in metas}),
         attempts=attempts, retries=tot("retries"), dropped=tot("dropped"),
+        near_miss_unintended_successes=tot("near_miss_unintended_successes"),
         planner_success_rate=_rate(attempts - tot("plan_failures"), attempts),
         execution_success_rate=_rate(attempts - tot("plan_failures") - tot("exec_failures"), attempts - tot("plan_failures")),
         replayed=tot("replayed"),

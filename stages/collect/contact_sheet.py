@@ -14,8 +14,8 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from stages.collect.dataset import Dataset
+from stages.collect.tasks import TASKS
 
-TASK_ORDER = ("pick_place", "push", "pull", "move_to_aim")
 LABEL_H = 14
 
 
@@ -29,7 +29,7 @@ def render(root: Path, n_frames: int = 8, scale: int = 2) -> Image.Image:
     """The contact sheet as an RGB image."""
     ds = Dataset(root)
     strips = []
-    for task in TASK_ORDER:
+    for task in TASKS:
         meta = _pick(ds, task)
         if meta is None:
             continue

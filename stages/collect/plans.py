@@ -11,6 +11,11 @@ Suboptimal kinds (paper §4.1), each derived from the optimal plan of the same e
     (same path, stop-and-go timing, longer episode);
   - ``grasp_disturb``: small pose disturbances (~1-2 cm, ~0.15 rad) just before the grasp / contact
     waypoint and the place waypoint; for push / pull, a sideways wobble (<= 0.9 cm) mid-slide.
+
+One failure kind (beyond the paper), the world model's done-head negatives, never a demonstration:
+  - ``near_miss``: the optimal plan that misses at the end: the object is carried and released
+    8-13 cm beside its target (pick & place, move to aim), or the slide stops after 15-60% of its
+    distance (push, pull). Its last frames look like a finished demonstration but are not.
 """
 from __future__ import annotations
 
@@ -18,7 +23,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-KINDS = ("optimal", "waypoint_noise", "interpolate", "grasp_disturb")
+SUBOPTIMAL_KINDS = ("waypoint_noise", "interpolate", "grasp_disturb")
+FAILURE_KINDS = ("near_miss",)
+KINDS = ("optimal", *SUBOPTIMAL_KINDS, *FAILURE_KINDS)
 
 
 @dataclass(frozen=True)
@@ -128,6 +135,8 @@ def suboptimal_plan(opt: list, kind: str, rng: np.random.Generator, *, rot_sigma
     """The optimal plan ``opt`` perturbed by ``kind`` (one of KINDS)."""
     if kind == "optimal":
         return list(opt)
+    if kind == "near_miss":
+        return near_miss_plan(opt, rng)
     out: list = []
     prev_pose = None
     for step in opt:
@@ -156,6 +165,25 @@ def suboptimal_plan(opt: list, kind: str, rng: np.random.Generator, *, rot_sigma
             elif kind not in KINDS:
                 raise ValueError(f"unknown trajectory kind {kind!r}; expected one of {KINDS}")
             prev_pose = step.pose
+        out.append(step)
+    return out
+
+
+def near_miss_plan(opt: list, rng: np.random.Generator, *, offset: tuple = (0.08, 0.13),
+                   slide_fraction: tuple = (0.15, 0.6)) -> list:
+    """``opt`` that ends beside its goal: transport waypoints shifted sideways, or the slide cut short."""
+    moves = {s.role: s for s in opt if isinstance(s, Move)}
+    out: list = []
+    if "slide" in moves:  # push / pull: stop the slide early, retreat from where it stopped
+        a, b = np.asarray(moves["contact"].pose[:3]), np.asarray(moves["slide"].pose[:3])
+        shift = (1.0 - rng.uniform(*slide_fraction)) * (a - b)  # (3,) back towards the contact point
+    else:  # pick & place, move to aim: carry, place and retreat beside the target
+        angle = rng.uniform(0.0, 2.0 * np.pi)
+        shift = rng.uniform(*offset) * np.array([np.cos(angle), np.sin(angle), 0.0])
+    moved = ("slide", "retreat") if "slide" in moves else ("carry", "place", "retreat")
+    for step in opt:
+        if isinstance(step, Move) and step.role in moved:
+            step = Move(_pose(np.asarray(step.pose[:3]) + shift, step.pose[3:]), label=step.label, role=step.role)
         out.append(step)
     return out
 

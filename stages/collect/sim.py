@@ -25,8 +25,7 @@ import torch
 
 from stages.common.vulkan import ensure_vulkan, raise_if_no_device
 from stages.collect.catalog import Scene, read_scenes_json
-
-TASKS = ("pick_place", "push", "pull", "move_to_aim")
+from stages.collect.tasks import TASKS
 
 
 def _import_envs():

@@ -59,7 +59,7 @@ def collect_shard(job: dict) -> dict:
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     env, runner, state = _sim(job["task"], job["image_size"], job["robot_mesh"], job["max_steps"])
-    stats = dict(attempts=0, plan_failures=0, exec_failures=0, retries=0, dropped=0, written=0, frames=0,
+    stats = dict(attempts=0, plan_failures=0, exec_failures=0, unintended_successes=0, retries=0, dropped=0, written=0, frames=0,
                  replayed=0, replay_success=0, replay_exact=0, replay_seconds=0.0)
     metas = []
     writer = ShardWriter(Path(job["path"]))
@@ -76,9 +76,14 @@ def collect_shard(job: dict) -> dict:
                     stats["plan_failures"] += 1
                     rec = None
                     continue
-                if rec.success[-1] or job["keep_failed"]:
+                if ep["kind"] in plans.FAILURE_KINDS:  # a negative must not succeed at any frame
+                    if not rec.success.any():
+                        break
+                    stats["unintended_successes"] += 1
+                elif rec.success[-1] or job["keep_failed"]:
                     break
-                stats["exec_failures"] += 1
+                else:
+                    stats["exec_failures"] += 1
                 rec = None
             if rec is None:
                 stats["dropped"] += 1

@@ -13,7 +13,7 @@ Inputs:
     tokenize -- the tokenizer (the policy's observation function)
     train_wm -- the action WM (extreme-action figure), its split
     sft -- sft_policy.pt, text embeddings (instructions)
-    rl -- policy.zip, snapshots/, metrics.json (reward module, tasks, frame skip),
+    rl -- policy.zip, snapshots/, rl.json (reward module),
           training.png, reward_diagnostics.png
 
 Outputs:
@@ -74,15 +74,15 @@ def run(ctx) -> None:
     from stages.evaluate.episodes import close_sims, run_job
     from stages.evaluate.writeup import write_everything
 
+    from stages.rl import read_rl_facts
     from stages.sft import read_policy_json
 
     cfg: Config = ctx.config
     rl_dir = ctx.input("rl")
     policy = read_policy_json(ctx.input("sft"))  # the facts the sft stage fixed: tasks, control steps per policy step
-    rl_metrics = {**json.loads((rl_dir / "metrics.json").read_text()), "tasks": policy["tasks"],
-                  "frame_skip": int(policy["frame_skip"])}
-    jobs = build_jobs(ctx, cfg, rl_metrics)
-    snaps = snapshot_jobs(ctx, cfg, rl_metrics)
+    facts = {"reward": read_rl_facts(rl_dir)["reward"], "tasks": policy["tasks"], "frame_skip": int(policy["frame_skip"])}
+    jobs = build_jobs(ctx, cfg, facts)
+    snaps = snapshot_jobs(ctx, cfg, facts)
     ctx.log.info("evaluate: %d jobs (%d episodes) + %d snapshot jobs", len(jobs), sum(len(j.seeds) for j in jobs), len(snaps))
     try:
         results = [r for rs in ctx.map(run_job, jobs + snaps, desc="evaluate episodes") for r in rs]
@@ -91,7 +91,7 @@ def run(ctx) -> None:
     with open(ctx.out / "results.jsonl", "w") as f:
         for r in results:
             f.write(json.dumps({k: v for k, v in r.items() if k != "frames"}) + "\n")
-    metrics = write_everything(ctx, cfg, rl_metrics, results)
+    metrics = write_everything(ctx, cfg, facts, results)
     for name in ("training.png", "reward_diagnostics.png"):
         if (rl_dir / name).is_file():
             shutil.copyfile(rl_dir / name, ctx.out / name)

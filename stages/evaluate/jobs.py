@@ -67,10 +67,10 @@ def _spread(policy: str, path: Path, task: str, split: str, scenes: list[dict], 
     return jobs
 
 
-def build_jobs(ctx, cfg, rl_metrics: dict) -> list[Job]:
+def build_jobs(ctx, cfg, facts: dict) -> list[Job]:
     from stages.evaluate import SEED_BASE
 
-    tasks = list(rl_metrics["tasks"])
+    tasks = list(facts["tasks"])
     scenes = scenes_by_split(ctx, cfg, tasks)
     text = _text(ctx)
     paths = policy_paths(ctx)
@@ -86,18 +86,18 @@ def build_jobs(ctx, cfg, rl_metrics: dict) -> list[Job]:
                 recorded = recorded or record
                 seed0 = SEED_BASE + cfg.seed * 100_000 + ti * 10_000 + ("ind", "ood", "extra").index(split) * 1_000
                 jobs += _spread(policy, path, task, split, scenes[(task, split)], cfg.episodes, seed0, ctx, cfg, text, record,
-                                int(rl_metrics["frame_skip"]))
+                                int(facts["frame_skip"]))
     return jobs
 
 
-def snapshot_jobs(ctx, cfg, rl_metrics: dict) -> list[Job]:
+def snapshot_jobs(ctx, cfg, facts: dict) -> list[Job]:
     """Each PPO snapshot on IND and OOD (few episodes, tasks pooled): success vs training time."""
     from stages.evaluate import SEED_BASE
 
     index = ctx.input("rl") / "snapshots" / "index.json"
     if not cfg.snapshot_episodes or not index.is_file():
         return []
-    tasks = list(rl_metrics["tasks"])
+    tasks = list(facts["tasks"])
     scenes = scenes_by_split(ctx, cfg, tasks)
     text = _text(ctx)
     jobs = []
@@ -109,5 +109,5 @@ def snapshot_jobs(ctx, cfg, rl_metrics: dict) -> list[Job]:
                     seed0 = SEED_BASE + 50_000 + cfg.seed * 100_000 + ti * 1_000 + (split == "ood") * 500
                     jobs += _spread(f"ppo@{snap['timesteps']}", ctx.input("rl") / snap["path"], task, split,
                                     scenes[(task, split)], n, seed0, ctx, cfg, text, False,
-                                    int(rl_metrics["frame_skip"]))
+                                    int(facts["frame_skip"]))
     return jobs

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.collect.tasks import TITLES
 from stages.evaluate.stats import fmt_rate, wilson
 
 SPLITS = ("ind", "ood", "extra")
 SPLIT_NAMES = {"ind": "IND", "ood": "OOD", "extra": "extra"}
-TASK_NAMES = {"pick_place": "Pick & Place", "push": "Push", "pull": "Pull", "move_to_aim": "Move to Aim"}
 
 
 def tally(results: list[dict]) -> dict[tuple[str, str, str], tuple[int, int]]:
@@ -27,7 +27,7 @@ def tally(results: list[dict]) -> dict[tuple[str, str, str], tuple[int, int]]:
 def success_table(counts: dict, rows: list[tuple[str, str]], tasks: list[str], splits: list[str]) -> tuple[list[str], list[list[str]]]:
     """Header and cells: rows (label, policy key) x columns split x task (+ all tasks pooled)."""
     cols = [(s, t) for s in splits for t in [*tasks, "all"]]
-    header = ["method"] + [f"{SPLIT_NAMES[s]} {TASK_NAMES.get(t, 'all tasks')}" for s, t in cols]
+    header = ["method"] + [f"{SPLIT_NAMES[s]} {TITLES.get(t, 'all tasks')}" for s, t in cols]
     body = [[label] + [fmt_rate(*counts.get((key, t, s), (0, 0))) for s, t in cols] for label, key in rows]
     return header, body
 

@@ -22,13 +22,13 @@ def method_label(policy: str, reward: str) -> str:
     return "Supervised finetune (SFT)" if policy == "sft" else METHODS[reward]
 
 
-def write_everything(ctx, cfg, rl_metrics: dict, results: list[dict]) -> dict:
+def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
     out = ctx.out
-    reward, tasks = rl_metrics["reward"], list(rl_metrics["tasks"])
+    reward, tasks = facts["reward"], list(facts["tasks"])
     main = [r for r in results if "@" not in r["policy"]]
     counts = tally(main)
     metrics: dict = {"reward": reward, "tasks": tasks, "episodes_per_cell": cfg.episodes, "max_steps": cfg.max_steps,
-                     "frame_skip": int(rl_metrics["frame_skip"]),
+                     "frame_skip": int(facts["frame_skip"]),
                      "extra_scenes": len(cfg.extra_scenes)}
     for (policy, task, split), (k, n) in sorted(counts.items()):
         p, lo, hi = wilson(k, n)
@@ -41,7 +41,7 @@ def write_everything(ctx, cfg, rl_metrics: dict, results: list[dict]) -> dict:
     table_name = "Table 1 layout: success rate in the simulator" if len(tasks) == 1 else \
         f"Table 2 layout: one multi-task policy ({', '.join(tasks)})"
     note = (f"Success rate [95% Wilson interval] (successes/episodes); {cfg.episodes} episodes per task and split, "
-            f"horizon {cfg.max_steps} policy steps of {rl_metrics['frame_skip']} control steps each, "
+            f"horizon {cfg.max_steps} policy steps of {facts['frame_skip']} control steps each, "
             f"ManiSkill's own success check. IND: the training scenes with new initial "
             f"states; OOD: held-out scenes (unseen objects, unseen object-container pairs); extra: user-added scenes.")
     sections = [(table_name, note + "\n\n" + markdown_table(header, body), f"<p>{note}</p>" + html_table(header, body))]

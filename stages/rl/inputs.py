@@ -79,12 +79,14 @@ class RLInputs:
         tokens = np.asarray(self.store.episode(episode_id), dtype=np.int64)
         return tokens[frame_indices(len(tokens) - 1, self.frame_skip)]
 
-    def steps(self, episode_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """World-model steps of an episode: tokens (T'+1, h, w), composed actions (T', 7), rule reward (T',)."""
+    def steps(self, episode_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """World-model steps of an episode: tokens (T'+1, h, w), composed actions (T', 7), rule reward
+        (T',) and the simulator's success flag (T',) after each step."""
         ep = self.dataset.load_states(episode_id)
         n, k = len(ep["action"]), self.frame_skip
         return (self.tokens(episode_id), compose_actions(ep["action"], k),
-                per_step(np.asarray(ep["reward"], dtype=np.float32), n, k))
+                per_step(np.asarray(ep["reward"], dtype=np.float32), n, k),
+                np.asarray(ep["success"], dtype=bool)[frame_indices(n, k)[1:]])
 
     def first_proprio(self, episode_id: str) -> np.ndarray:
         """(10,) proprioception of an episode's first frame."""

@@ -7,8 +7,10 @@ policy step means the same in the simulator as in the world model; the reward is
 (state-based) normalised dense reward after the last of them, ``max_steps`` counts policy steps.
 Only the last control step of a policy step renders the cameras (unless ``keep_frames``): the others
 are never observed (a policy step of 4 control steps: 64 ms rendering each, 32 ms rendering the
-last). Each env samples one of its assigned (task, scene) environments at reset; simulator
-instances are created lazily and cached (building one costs seconds), at most ``cache_size`` per env.
+last). With ``payout_gamma`` set, a successful step is paid the rule reward's maximum (1) for
+itself and each step left (``stages.rl.rewards.success_return``). Each env samples one of its
+assigned (task, scene) environments at reset; simulator instances are created lazily and cached
+(building one costs seconds), at most ``cache_size`` per env.
 """
 from __future__ import annotations
 
@@ -20,6 +22,8 @@ import numpy as np
 
 from stages.common.action_space import executed
 from stages.common.proprio import proprio_from_sim_state
+from stages.rl.rewards.base import success_return
+from stages.rl.rewards.rule import RuleReward
 from stages.sft.observation import ObservationFn, index_obs
 
 
@@ -42,12 +46,12 @@ class SimTaskEnv(gym.Env):
 
     def __init__(self, specs: list[SimSpec], obs_fn: ObservationFn, *, max_steps: int, image_size: int = 64,
                  robot_mesh: str = "lowpoly", seed: int = 0, cache_size: int = 2, keep_frames: bool = False,
-                 action_repeat: int = 1):
+                 action_repeat: int = 1, payout_gamma: float | None = None):
         if not specs:
             raise ValueError("SimTaskEnv needs at least one (task, scene)")
         if action_repeat < 1:
             raise ValueError(f"action_repeat must be >= 1, got {action_repeat}")
-        self.action_repeat = action_repeat
+        self.action_repeat, self.payout_gamma = action_repeat, payout_gamma
         self.specs, self.obs_fn, self.max_steps = list(specs), obs_fn, max_steps
         self.image_size, self.robot_mesh, self.cache_size = image_size, robot_mesh, cache_size
         self.observation_space = obs_fn.space
@@ -111,6 +115,8 @@ class SimTaskEnv(gym.Env):
         self.t += 1
         success = bool(info["success"])
         truncated = (self.t >= self.max_steps or bool(env_truncated)) and not success
+        if success and self.payout_gamma is not None:
+            reward = float(success_return(RuleReward.max_step_reward, self.max_steps - self.t, self.payout_gamma))
         return self._observe(raw), float(reward), success, truncated, {"success": success, "env": self.spec_now.key}
 
     def _unobserved_control_step(self, a: np.ndarray) -> bool:

@@ -1,81 +1,87 @@
 """The rl stage's work, in order: fit learned rewards, diagnose rewards, PPO from the SFT policy, save."""
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
 import torch
 
+from stages.common.curves import Curves
 from stages.rl.diagnostics import binned_curve, plot_curves, progress_correlation
-from stages.rl.ppo import make_ppo
-from stages.rl.rewards import EmbeddingReward, GoalDistance, ProxyReward, WMReward
-from stages.rl.rewards.fit import FrameSet, fit_embedding_head, fit_proxy, frame_set
+from stages.rl.guard import Guard, fit_done_ensemble
+from stages.rl.ppo import make_ppo, normalized_rewards
+from stages.rl.rewards import REGISTRY, GoalDistance, RewardParts, WMReward
+from stages.rl.rewards.fit import fit_embedding_head, fit_proxy, frame_set
 from stages.rl.training import TrainingLog, plot_training
 from stages.rl.wm_env import WorldModelVecEnv
 from stages.sft.policy import flat_params
+
+HEAD_FITS = {"embedding": fit_embedding_head, "proxy": fit_proxy}
 
 
 def _episode_tuples(inp, ids: list[str]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     return [inp.steps(i) for i in ids]
 
 
-def _frames(inp, fs: FrameSet) -> tuple[torch.Tensor, torch.Tensor]:
-    return inp.tok.decode(fs.tokens)
-
-
 def train(ctx, cfg, inp) -> dict:
     t_stage = time.perf_counter()
     tasks = inp.tasks
-    metrics: dict = {"reward": cfg.reward, "tasks": tasks, "frame_skip": inp.frame_skip}
+    chosen = REGISTRY[cfg.reward]
+    metrics: dict = {}
     envs = inp.training_envs(tasks)
     metrics["train_environments"] = len(envs)
     ctx.log.info("rl: reward %s, %d training environments of tasks %s", cfg.reward, len(envs), tasks)
 
     # ---- learned rewards (fitted to the rule reward of IND training episodes) ----------------------
-    wanted = {"wm", "rule", "embedding", "proxy"} if cfg.diagnostics == "all" else {cfg.reward}
-    heads = {}
-    if wanted & {"embedding", "proxy"}:
+    wanted = list(REGISTRY) if cfg.diagnostics == "all" else [cfg.reward]
+    parts = RewardParts()
+    fits = sorted({REGISTRY[name].needs_head for name in wanted} - {None})
+    guard = None
+    if fits or cfg.guard:
         fit_ids = inp.episodes_for(inp.split["train"], tasks, False, cfg.head_episodes, cfg.seed)
         with ctx.progress(len(fit_ids), "rl: hidden states for reward heads", unit="ep") as bar:
             fs_fit = frame_set(inp.wm, _episode_tuples(inp, fit_ids), inp.device, bar)
-        if "embedding" in wanted:
-            heads["embedding"], losses = fit_embedding_head(fs_fit, steps=cfg.head_steps, lr=cfg.head_lr, seed=cfg.seed)
-            metrics["heads/embedding/final_mse"] = float(np.mean(losses[-20:]))
-        if "proxy" in wanted:
-            heads["proxy"], losses = fit_proxy(fs_fit, inp.tok, steps=cfg.head_steps, lr=cfg.head_lr, seed=cfg.seed)
-            metrics["heads/proxy/final_mse"] = float(np.mean(losses[-20:]))
+        for head in fits:
+            parts.heads[head], losses = HEAD_FITS[head](fs_fit, inp.tok, steps=cfg.head_steps, lr=cfg.head_lr, seed=cfg.seed)
+            metrics[f"heads/{head}/final_mse"] = float(np.mean(losses[-20:]))
         metrics["heads/frames"] = int(len(fs_fit.reward))
-        torch.save({k: v.state_dict() for k, v in heads.items()}, ctx.out / "reward_heads.pt")
+        if cfg.guard and chosen.env == "wm":
+            ensemble, losses = fit_done_ensemble(fs_fit.hidden, fs_fit.success, heads=cfg.guard_heads,
+                                                 steps=cfg.guard_steps, lr=cfg.head_lr, seed=cfg.seed)
+            guard = Guard(ensemble, cfg.guard_coef, cfg.theta_done)
+            metrics["guard/final_bce"] = float(np.mean(losses[-20:]))
+            metrics["guard/positive_frames"] = int(fs_fit.success.sum())
+            torch.save(ensemble.state_dict(), ctx.out / "guard.pt")
+        torch.save({k: v.state_dict() for k, v in parts.heads.items()}, ctx.out / "reward_heads.pt")
 
     goal_third, goal_wrist = inp.goal_frames()
-    distance = GoalDistance(goal_third, goal_wrist, inp.device)
+    parts.distance = GoalDistance(goal_third, goal_wrist, inp.device)
 
     # ---- reward diagnostics on held-out successful episodes ------------------------------------------
-    metrics.update(_diagnose(ctx, cfg, inp, wanted, heads, distance))
+    metrics.update(_diagnose(ctx, cfg, inp, wanted, parts))
 
     # ---- the environment and its reward --------------------------------------------------------------
-    if cfg.reward == "rule":
-        env = _sim_vec_env(ctx, cfg, inp, envs)
+    payout_gamma = cfg.gamma if cfg.success_payout else None
+    if chosen.env == "sim":
+        raw_env = _sim_vec_env(ctx, cfg, inp, envs, payout_gamma)
     else:
-        module = {
-            "wm": lambda: WMReward(distance, alpha=cfg.alpha, beta=cfg.beta, theta_sps=cfg.theta_sps, dense=cfg.dense,
-                                   gamma=cfg.gamma, num_envs=cfg.num_envs),
-            "embedding": lambda: EmbeddingReward(heads["embedding"]),
-            "proxy": lambda: ProxyReward(heads["proxy"]),
-        }[cfg.reward]()
-        env = WorldModelVecEnv(inp.wm, inp.tok, inp.obs_fn, module, inp.starts(envs), num_envs=cfg.num_envs,
-                               max_steps=cfg.max_episode_steps, theta_done=cfg.theta_done, seed=cfg.seed,
-                               device=inp.device)
+        raw_env = WorldModelVecEnv(inp.wm, inp.tok, inp.obs_fn, chosen.build(parts, cfg, cfg.num_envs),
+                                   inp.starts(envs), num_envs=cfg.num_envs, max_steps=cfg.max_episode_steps,
+                                   theta_done=cfg.theta_done, seed=cfg.seed, device=inp.device,
+                                   payout_gamma=payout_gamma, guard=guard)
+    env = normalized_rewards(raw_env, cfg)
 
     # ---- PPO from the SFT policy -------------------------------------------------------------------
     model = make_ppo(env, cfg, inp.sft_policy, inp.sft_info, inp.device)
     before = flat_params(model.policy)
 
-    log = TrainingLog(ctx.out, cfg.total_timesteps, cfg.snapshots)
     t0 = time.perf_counter()
-    with ctx.progress(cfg.total_timesteps, f"rl: PPO ({cfg.reward})", unit="step") as bar:
-        log.progress = bar
+    with ctx.progress(cfg.total_timesteps, f"rl: PPO ({cfg.reward})", unit="step") as bar, Curves(ctx.out) as curves:
+        log = TrainingLog(ctx.out, cfg.total_timesteps, cfg.snapshots, progress=bar, curves=curves)
+        model.curves = curves
         model.learn(total_timesteps=cfg.total_timesteps, callback=log)
+        model.curves = None
     seconds = time.perf_counter() - t0
     model.save(ctx.out / "policy.zip")
     log.write()
@@ -87,15 +93,53 @@ def train(ctx, cfg, inp) -> dict:
         "ppo/timesteps": int(model.num_timesteps), "ppo/seconds": seconds,
         "ppo/env_steps_per_second": model.num_timesteps / seconds,
         "ppo/param_change_relative": float((after - before).norm() / before.norm()),
-        "stage_seconds": time.perf_counter() - t_stage,
+        "ppo/updates": int(model.updates_done),
+        "ppo/kl_to_sft_last": model.kl_history[-1] if model.kl_history else None,
     })
-    if isinstance(env, WorldModelVecEnv):
-        metrics["ppo/clipped_action_entries"] = int(env.roll.clip_count)
+    if isinstance(raw_env, WorldModelVecEnv):
+        metrics["ppo/clipped_action_entries"] = int(raw_env.roll.clip_count)
     ctx.log.info("rl: %s", {k: v for k, v in metrics.items() if k.startswith("ppo/")})
+    if cfg.precision_envs:
+        metrics.update(_imagined_precision(ctx, cfg, inp, model.policy))
+    metrics["stage_seconds"] = time.perf_counter() - t_stage
     return metrics
 
 
-def _diagnose(ctx, cfg, inp, wanted: set[str], heads: dict, distance: GoalDistance) -> dict:
+def _imagined_precision(ctx, cfg, inp, policy) -> dict:
+    """The final policy imagines episodes from fresh simulator starts; ManiSkill replays them."""
+    from stages.collect.catalog import read_scenes_json
+    from stages.collect.dataset import read_sim_facts
+    from stages.rl.imagined import imagine_and_replay, pick_environments, precision_metrics
+    from stages.rl.sim_env import SimSpec, SimTaskEnv
+
+    scenes = read_scenes_json(ctx.input("collect") / "scenes.json")
+    facts = read_sim_facts(ctx.input("collect"))
+    policy.set_training_mode(False)
+    out, table = {}, {}
+    for split in ("ind", "ood"):
+        picked = pick_environments([e for e in inp.envs if e.split == split and e.task in inp.tasks], cfg.precision_envs)
+        if not picked:
+            continue
+        specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction) for e in picked]
+        sim = SimTaskEnv(specs, inp.obs_fn, max_steps=cfg.max_episode_steps, action_repeat=inp.frame_skip,
+                         image_size=facts.image_size, robot_mesh=facts.robot_mesh, seed=cfg.seed)
+        seeds = [3_000_000 + 1000 * cfg.seed + i for i in range(len(specs))]  # apart from training and evaluation
+        try:
+            with ctx.progress(len(specs), f"rl: imagined vs replayed ({split})", unit="env") as bar:
+                rows = imagine_and_replay(policy, inp.wm, inp.tok, inp.obs_fn, sim, specs, seeds,
+                                          cfg.max_episode_steps, cfg.theta_done)
+                bar.update(len(specs))
+        finally:
+            sim.close()
+        table[split] = [vars(r) for r in rows]
+        out.update({f"imagined/{split}/{k}": v for k, v in precision_metrics(rows).items()})
+    (ctx.out / "imagined.json").write_text(json.dumps(table, indent=1) + "\n")
+    ctx.log.info("rl: imagined-success precision %s", {k: v for k, v in out.items() if k.endswith(("precision", "done"))})
+    return out
+
+
+def _diagnose(ctx, cfg, inp, wanted: list[str], parts: RewardParts) -> dict:
+    """Every wanted module's reward along held-out successful episodes, computed by the module itself."""
     out: dict = {}
     curves: dict[str, dict[str, np.ndarray]] = {}
     for split, ids in (("ind", inp.split["heldout"]), ("ood", inp.split["ood"])):
@@ -105,22 +149,19 @@ def _diagnose(ctx, cfg, inp, wanted: set[str], heads: dict, distance: GoalDistan
             continue
         with ctx.progress(len(pick), f"rl: diagnostics {split}", unit="ep") as bar:
             fs = frame_set(inp.wm, _episode_tuples(inp, pick), inp.device, bar)
-        third, wrist = _frames(inp, fs)
+        decoded, first_decoded = inp.tok.decode(fs.tokens), inp.tok.decode(fs.first_tokens)
         goal_rows = np.array([inp.env_of(pick[e]) for e in fs.episode])
-        rewards = {}
-        if "rule" in wanted:
-            rewards["rule"] = fs.reward.numpy().astype(np.float64)
-        if "wm" in wanted:
-            sim = 1.0 - distance(third, wrist, goal_rows)
-            sparse = (fs.done_prob.numpy() >= cfg.theta_sps).astype(np.float64)
-            rewards["wm"] = cfg.alpha * sparse + cfg.beta * sim
-            rewards["wm_dense"] = sim
-            rewards["wm_sparse"] = sparse
-        with torch.no_grad():
-            if "embedding" in heads:
-                rewards["embedding"] = heads["embedding"](fs.hidden).numpy().astype(np.float64)
-            if "proxy" in heads:
-                rewards["proxy"] = heads["proxy"](third, wrist).numpy().astype(np.float64)
+        modules = {name: REGISTRY[name].build(parts, cfg, 1) for name in wanted}
+        if "wm" in modules:  # its two terms on their own as well
+            w = modules["wm"]
+            modules["wm_dense"] = WMReward(parts.distance, alpha=0.0, beta=1.0, theta_sps=w.theta, dense=w.dense_kind,
+                                           gamma=w.gamma)
+            modules["wm_sparse"] = WMReward(parts.distance, alpha=1.0, beta=0.0, theta_sps=w.theta)
+        rewards = {name: np.zeros(len(fs.episode)) for name in modules}
+        for e in range(len(pick)):
+            first, frames = fs.episode_batches(e, decoded, first_decoded, goal_rows)
+            for name, module in modules.items():
+                rewards[name][fs.episode == e] = module.along(first, frames)
         out[f"diagnostics/{split}/episodes"] = len(pick)
         curves[split] = {}
         for name, r in rewards.items():
@@ -131,7 +172,7 @@ def _diagnose(ctx, cfg, inp, wanted: set[str], heads: dict, distance: GoalDistan
     return out
 
 
-def _sim_vec_env(ctx, cfg, inp, envs):
+def _sim_vec_env(ctx, cfg, inp, envs, payout_gamma: float | None):
     """``sim_envs`` simulator envs over the training environments (the ``rule`` baseline)."""
     from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -146,5 +187,5 @@ def _sim_vec_env(ctx, cfg, inp, envs):
     groups = [specs[i::n] for i in range(n)]
     return DummyVecEnv([lambda g=g, i=i: SimTaskEnv(g, inp.obs_fn, max_steps=cfg.max_episode_steps, seed=cfg.seed + i,
                                                       action_repeat=inp.frame_skip, image_size=facts.image_size,
-                                                      robot_mesh=facts.robot_mesh)
+                                                      robot_mesh=facts.robot_mesh, payout_gamma=payout_gamma)
                         for i, g in enumerate(groups)])

@@ -12,9 +12,9 @@ from stable_baselines3.common.callbacks import BaseCallback
 class TrainingLog(BaseCallback):
     """Per-episode return/length/termination, and ``snapshots`` policy checkpoints spread over training."""
 
-    def __init__(self, out: Path, total_timesteps: int, snapshots: int, progress=None):
+    def __init__(self, out: Path, total_timesteps: int, snapshots: int, progress=None, curves=None):
         super().__init__()
-        self.out, self.progress = Path(out), progress
+        self.out, self.progress, self.curves = Path(out), progress, curves
         self.marks = sorted({int(total_timesteps * (i + 1) / snapshots) for i in range(snapshots)}) if snapshots else []
         self.episodes: list[dict] = []
         self.snapshots: list[dict] = []
@@ -28,7 +28,10 @@ class TrainingLog(BaseCallback):
         self._t0 = time.perf_counter()
 
     def _on_step(self) -> bool:
-        rewards, dones, infos = self.locals["rewards"], self.locals["dones"], self.locals["infos"]
+        dones, infos = self.locals["dones"], self.locals["infos"]
+        # the environment's own reward, before VecNormalize scaled it for the update
+        original = getattr(self.training_env, "get_original_reward", None)
+        rewards = original() if original is not None else self.locals["rewards"]
         self._ret += rewards
         self._len += 1
         for i in np.nonzero(dones)[0]:
@@ -37,6 +40,10 @@ class TrainingLog(BaseCallback):
             self.episodes.append({"t": int(self.num_timesteps), "wall": time.perf_counter() - self._t0,
                                   "return": float(self._ret[i]), "length": int(self._len[i]),
                                   "terminated": bool(terminated), "success": bool(info.get("success", terminated))})
+            if self.curves is not None:
+                self.curves.scalar("episode/return", self._ret[i], self.num_timesteps)
+                self.curves.scalar("episode/length", self._len[i], self.num_timesteps)
+                self.curves.scalar("episode/terminated", float(terminated), self.num_timesteps)
             self._ret[i], self._len[i] = 0.0, 0
         if self.progress is not None:
             self.progress.update(self.num_timesteps - self._last)

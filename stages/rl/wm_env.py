@@ -5,8 +5,11 @@ reset: each env samples a training environment (task x scene) and one of its ini
 the robot's proprioception there) from the collected data. step(action): the action is executed
 as in the simulator (``stages.common.action_space``), the action WM predicts the next frame
 (KV-cached, batched) and its proprioception head the robot's next state, the reward module scores
-the frame, ``terminated`` = done head >= theta_done, ``truncated`` = step cap. Observations come
-from ``ObservationFn`` (the same function the simulator env uses).
+the frame, ``terminated`` = done head >= theta_done, ``truncated`` = step cap. A terminated step is
+paid ``success_return`` (the module's maximum for this step and the steps left) when
+``payout_gamma`` is set. With a ``guard`` (``stages.rl.guard``), the done-head ensemble's
+disagreement is subtracted from every reward and a termination needs its confirmation. Observations come from ``ObservationFn`` (the same function the
+simulator env uses).
 """
 from __future__ import annotations
 
@@ -20,7 +23,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from stages.common.action_space import executed
 from stages.common.proprio import PROPRIO_DIM
-from stages.rl.rewards.base import RewardModule, StepBatch
+from stages.rl.rewards.base import RewardModule, StepBatch, success_return
 from stages.sft.observation import ObservationFn, index_obs
 
 
@@ -52,13 +55,15 @@ class WorldModelVecEnv(VecEnv):
     render_mode = None
 
     def __init__(self, wm, tokenizer, obs_fn: ObservationFn, reward: RewardModule, starts: Sequence[Start], *,
-                 num_envs: int, max_steps: int, theta_done: float, seed: int = 0, device: str = "cpu"):
+                 num_envs: int, max_steps: int, theta_done: float, seed: int = 0, device: str = "cpu",
+                 payout_gamma: float | None = None, guard=None):
         if not starts:
             raise ValueError("the world-model env needs at least one initial state")
         action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
         super().__init__(num_envs, obs_fn.space, action_space)
         self.wm, self.tok, self.obs_fn, self.reward = wm, tokenizer, obs_fn, reward
         self.starts, self.max_steps, self.theta_done, self.device = list(starts), max_steps, theta_done, device
+        self.payout_gamma, self.guard = payout_gamma, guard  # guard: stages.rl.guard.Guard or None
         self.roll = wm.rollout(num_envs, seed=seed)
         self.rng = np.random.default_rng(seed)
         self.current: list[Start] = [self.starts[0]] * num_envs
@@ -125,11 +130,22 @@ class WorldModelVecEnv(VecEnv):
         self.t += 1
         done_prob = out.done_prob.cpu().numpy()
         terminated = done_prob >= self.theta_done
+        disagreement = None
+        if self.guard is not None:  # penalise disagreement; a success must be confirmed by the ensemble
+            disagreement, confirmed = self.guard(out.hidden)
+            rewards = (rewards - self.guard.coef * self.reward.max_step_reward * disagreement).astype(np.float32)
+            terminated &= confirmed
         truncated = (self.t >= self.max_steps) & ~terminated
+        if self.payout_gamma is not None and terminated.any():
+            paid = success_return(self.reward.max_step_reward, self.max_steps - self.t, self.payout_gamma)
+            rewards = np.where(terminated, paid, rewards).astype(np.float32)
         dones = terminated | truncated
         obs = self._obs(out.tokens)
         infos: list[dict[str, Any]] = [{"done_prob": float(done_prob[i]), "env_id": self.current[i].env_index,
                                         "clipped_actions": self.roll.last_clip_count} for i in range(self.num_envs)]
+        if disagreement is not None:
+            for i in range(self.num_envs):
+                infos[i]["guard_std"] = float(disagreement[i])
         self.stats["steps"] += self.num_envs
         rows = np.nonzero(dones)[0]
         if len(rows):

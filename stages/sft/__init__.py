@@ -18,7 +18,7 @@ Outputs:
     policy.json          what the policy is and needs: frame_skip, tasks, observation layout, noise
     text_embeddings.json MiniLM embedding of every instruction of the collect artifact
     split.json           demonstration episodes trained on and held out (early stopping, R^2)
-    training.png         train / held-out loss per epoch
+    training.png         train / held-out loss per epoch (also as TensorBoard events in tensorboard/)
     metrics.json         pairs, epochs, best epoch, held-out loss, per-dimension R^2 and residual std
 
 Key includes:
@@ -39,7 +39,9 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from stages.collect import TASK_NAMES
+from stages.collect.plans import SUBOPTIMAL_KINDS
+from stages.common.curves import Curves
+from stages.collect.tasks import TASKS, Task
 
 POLICY_JSON = "policy.json"
 TEXT_EMBEDDINGS = "text_embeddings.json"
@@ -51,9 +53,9 @@ class Config(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     seed: int = Field(0, description="seed of initialisation, the held-out split and batch order")
-    tasks: list[Literal["pick_place", "push", "pull", "move_to_aim"]] = Field(
-        list(TASK_NAMES), min_length=1, description="tasks the one policy is cloned on (multi-task when several)")
-    kinds: list[Literal["optimal", "waypoint_noise", "interpolate", "grasp_disturb"]] = Field(
+    tasks: list[Task] = Field(
+        list(TASKS), min_length=1, description="tasks the one policy is cloned on (multi-task when several)")
+    kinds: list[Literal[("optimal", *SUBOPTIMAL_KINDS)]] = Field(
         ["optimal"], min_length=1, description="trajectory kinds used as demonstrations (successful ones only; "
         "with the suboptimal kinds too, success fell: docs/sft.md)")
     frame_skip: int = Field(4, ge=1, description="control steps per policy step; must equal train_wm.frame_skip (rl checks)")
@@ -159,6 +161,9 @@ def run(ctx) -> None:
         policy.log_std.copy_(torch.as_tensor(np.log(noise), dtype=torch.float32))
     policy.save(str(ctx.out / POLICY_FILE))
     _plot(hist, ctx.out / "training.png")
+    with Curves(ctx.out) as curves:  # per epoch, as in training.png
+        curves.series("sft/loss_train", hist["train"])
+        curves.series("sft/loss_heldout", hist["val"])
 
     info = {"frame_skip": cfg.frame_skip, "tasks": list(cfg.tasks), "observation": sorted(obs_fn.space.spaces),
             "grid": list(tok.grid), "bits": tok.bits, "action_loc": loc.tolist(), "action_scale": scale.tolist(),

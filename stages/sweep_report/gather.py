@@ -40,6 +40,12 @@ def _committed(path: Path | None) -> Path | None:
     return path if path is not None and (path / "manifest.json").is_file() else None
 
 
+def _tasks(sft_dir: Path | None) -> list[str]:
+    """The tasks the sft stage published in its policy.json (none without a committed sft artifact)."""
+    sft_dir = _committed(Path(sft_dir)) if sft_dir is not None else None
+    return list(_json(sft_dir / "policy.json", {}).get("tasks", [])) if sft_dir is not None else []
+
+
 def _short(v: Any) -> str:
     return "+".join(map(str, v)) if isinstance(v, (list, tuple)) else str(v)
 
@@ -54,9 +60,10 @@ def gather(point: dict) -> PointRun | None:
     config = manifest.get("key_inputs", {}).get("config", {})
     metrics = _json(rl_dir / "metrics.json", {})
     short = ", ".join(f"{k.rsplit('.', 1)[-1]} {_short(v)}" for k, v in point["values"].items())
-    run = PointRun(label=short or point["label"], method=metrics.get("reward", config.get("reward", "?")),
+    facts = _json(rl_dir / "rl.json", {})  # what the rl stage published (older artifacts: its config)
+    run = PointRun(label=short or point["label"], method=facts.get("reward", config.get("reward", "?")),
                    seed=config.get("seed", point["values"].get("rl.seed")),
-                   tasks=list(metrics.get("tasks", config.get("tasks", []))), rl_metrics=metrics, rl_dir=rl_dir,
+                   tasks=_tasks(arts.get("sft")), rl_metrics=metrics, rl_dir=rl_dir,
                    snapshots=_json(rl_dir / "snapshots" / "index.json", []),
                    training=_json(rl_dir / "episodes.json", []), sft_dir=arts.get("sft"))
     run.seconds["rl"] = float(manifest.get("duration_s", float("nan")))

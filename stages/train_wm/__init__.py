@@ -19,7 +19,9 @@ Outputs (in the artifact directory):
                                LPIPS at horizons 1, 5, 15 on held-out IND and OOD next to the
                                copy-last-frame baseline and the tokenizer ceiling, controllability
                                (true vs shuffled actions), extreme-action rollouts; done-head AUROC,
-                               precision / recall at ``done_threshold``, Brier, ECE for both models;
+                               precision / recall at ``done_threshold``, Brier, ECE for both models,
+                               and their false alarms on near-miss episodes (collect's done-head
+                               negatives; the text WM trains on the other episodes only);
                                proprioception head: TCP error (cm) at horizons 1, 5, 15 vs copy-last
     frames.png                 real vs predicted frame strips (held-out IND and OOD)
 
@@ -41,13 +43,15 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
+from stages.collect.plans import FAILURE_KINDS
 from stages.common.frame_skip import frame_indices
 from stages.train_wm.data import ClipSampler, load_episodes, split_episodes
-from stages.train_wm.evaluate import (HORIZONS, decoded, done_head_eval, extreme_action_eval, horizon_eval,
-                                      real_images, rollout_starts)
+from stages.train_wm.evaluate import (HORIZONS, decoded, done_head_eval, extreme_action_eval, false_alarm_rate,
+                                      horizon_eval, real_images, rollout_starts)
 from stages.train_wm.figure import frame_strips
 from stages.train_wm.model import WMSpec, WorldModelNet
 from stages.train_wm.rollout import CHECKPOINTS, TEXT_EMBEDDINGS, WorldModel, save_world_model
+from stages.common.curves import Curves
 from stages.train_wm.train import train_world_model
 
 
@@ -76,6 +80,8 @@ class Config(BaseModel):
     weight_decay: float = Field(0.05, ge=0, description="AdamW weight decay of matrices")
     done_loss: Literal["bce", "rmse"] = Field("bce", description="done-head loss: BCE (calibrated) or the paper's RMSE")
     done_weight: float = Field(1.0, ge=0, description="weight of the done loss next to the token cross-entropy")
+    done_balance: bool = Field(True, description="done and not-done frames weigh half each in the done loss "
+                               "(success frames are few: the last frames of successful episodes)")
     changed_weight: float = Field(1.0, ge=1, description="cross-entropy weight of target tokens that changed since the previous frame")
     decode_steps: int = Field(2, ge=1, description="MaskGIT passes per predicted frame in rollouts")
     temperature: float = Field(0.0, ge=0, description="token sampling temperature in rollouts (0 = greedy)")
@@ -89,7 +95,8 @@ class Config(BaseModel):
     proprio_lr: float = Field(1e-3, gt=0, description="AdamW peak learning rate of the proprioception head")
 
 
-def _spec(cfg: Config, kind: str, vocab: int, grid: tuple[int, int]) -> WMSpec:
+def model_spec(cfg: Config, kind: str, vocab: int, grid: tuple[int, int]) -> WMSpec:
+    """The architecture of the ``kind`` world model (action | text) this config trains."""
     return WMSpec(kind=kind, vocab_size=vocab, grid=grid, dim=cfg.dim, depth=cfg.depth, heads=cfg.heads,
                   head_depth=cfg.head_depth, mlp_ratio=cfg.mlp_ratio, window=cfg.window,
                   control_tokens=cfg.control_tokens, frame_skip=cfg.frame_skip)
@@ -130,17 +137,21 @@ def run(ctx) -> None:
     # rollouts (a frame at a time) are faster at 1 thread (docs/world_model.md)
     if cpu:
         torch.set_num_threads(cfg.train_threads or max(1, ctx.jobs))
+    curves = Curves(ctx.out)  # TensorBoard: both world models' losses and the proprioception head's
     for i, kind in enumerate(("action", "text")):
         steps = cfg.action_steps if kind == "action" else cfg.text_steps
-        net = WorldModelNet(_spec(cfg, kind, vocab, grid)).to(ctx.device)
+        net = WorldModelNet(model_spec(cfg, kind, vocab, grid)).to(ctx.device)
         net.set_action_stats(train_actions.to(ctx.device))
-        sampler = ClipSampler(train_eps, cfg.window, text_emb, cfg.seed + 17 * i)
+        # the text WM imagines goals from instructions: failures (near-misses) would teach it that an
+        # instruction may end beside its goal, so it trains on the other episodes; the action WM on all
+        clips = train_eps if kind == "action" else [e for e in train_eps if e.kind not in FAILURE_KINDS]
+        sampler = ClipSampler(clips, cfg.window, text_emb, cfg.seed + 17 * i)
         with ctx.progress(steps, f"train_wm: {kind} WM", unit="step") as bar:
             result = train_world_model(net, sampler, steps=steps, batch_size=cfg.batch_size, lr=cfg.lr,
                                        weight_decay=cfg.weight_decay, done_weight=cfg.done_weight,
                                        done_kind=cfg.done_loss, seed=cfg.seed + i, device=ctx.device,
-                                       changed_weight=cfg.changed_weight,
-                                       progress=bar, log=ctx.log, desc=f"{kind} WM")
+                                       changed_weight=cfg.changed_weight, done_balance=cfg.done_balance,
+                                       progress=bar, log=ctx.log, desc=f"{kind}_wm", curves=curves)
         save_world_model(net, ctx.out / CHECKPOINTS[kind],
                          {"decode_steps": cfg.decode_steps, "temperature": cfg.temperature})
         models[kind] = WorldModel(net, cfg.decode_steps, cfg.temperature, {k: v.tolist() for k, v in text_emb.items()})
@@ -154,6 +165,8 @@ def run(ctx) -> None:
 
     tok = load_tokenizer(tok_dir, ctx.device)
     metrics.update(_proprio_head(ctx, cfg, tok, train_eps, held_eps, ood_eps))
+    curves.series("proprio/loss", metrics["proprio/history"])
+    curves.close()
 
     if cpu:
         torch.set_num_threads(1)
@@ -199,10 +212,13 @@ def _evaluate(ctx, cfg: Config, models: dict, held_eps: list, ood_eps: list, tex
         if not eps:
             ctx.log.warning("train_wm: no %s episodes, no metrics for that split", split)
             continue
+        misses = [e for e in eps if e.kind in FAILURE_KINDS]
         eps = [eps[i] for i in sorted(rng.choice(len(eps), size=min(cfg.eval_episodes, len(eps)), replace=False))]
         for kind, wm in models.items():
             for k, v in done_head_eval(wm, eps, cfg.done_threshold, text_emb).items():
                 metrics[f"{kind}_wm/{split}/done/{k}"] = v
+            for k, v in false_alarm_rate(wm, misses, cfg.done_threshold, text_emb).items():
+                metrics[f"{kind}_wm/{split}/done/near_miss/{k}"] = v
         starts = rollout_starts(eps, max(HORIZONS), cfg.eval_starts, rng)
         if not starts:
             ctx.log.warning("train_wm: %s episodes are shorter than %d steps, no horizon metrics", split, max(HORIZONS))

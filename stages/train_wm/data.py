@@ -26,6 +26,7 @@ class Episode:
     actions: np.ndarray  # (T, 7) float32
     done: np.ndarray  # (T+1,) float32 in {0, 1}
     proprio: np.ndarray  # (T+1, 10) float32 robot proprioception (stages.common.proprio)
+    kind: str = "optimal"  # collect's trajectory kind (stages.collect.plans.KINDS)
 
     @property
     def length(self) -> int:
@@ -55,7 +56,7 @@ def load_episodes(collect_dir: Path, tokenize_dir: Path, progress=None, frame_sk
         keep = frame_indices(len(actions), frame_skip)
         out.append(Episode(meta.episode_id, meta.instruction, meta.split, tokens[keep],
                            compose_actions(actions, frame_skip), np.asarray(ep["success"], dtype=np.float32)[keep],
-                           proprio_from_state(ep["ee_pose"][keep], ep["qpos"][keep])))
+                           proprio_from_state(ep["ee_pose"][keep], ep["qpos"][keep]), meta.kind))
         if progress is not None:
             progress.update(1)
     return out

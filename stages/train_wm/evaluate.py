@@ -105,14 +105,12 @@ def done_metrics(prob: np.ndarray, label: np.ndarray, theta: float) -> dict[str,
 
 
 @torch.no_grad()
-def done_head_eval(wm: WorldModel, episodes: list[Episode], theta: float, text_emb: dict) -> dict[str, float]:
-    """Done-head metrics of teacher-forced real sequences against the simulator's success (frames 1..T).
+def done_probabilities(wm: WorldModel, episodes: list[Episode], text_emb: dict) -> list[np.ndarray]:
+    """Done-head probabilities of teacher-forced real sequences, (T,) per episode for frames 1..T.
 
     All episodes run as one batch, padded to the longest with their last frame (and zero actions);
-    the causal model makes the padding invisible to the real frames, whose outputs alone are scored.
+    the causal model makes the padding invisible to the real frames, whose outputs alone are kept.
     """
-    if not episodes:
-        return {}
     h, w = wm.spec.grid
     t_max = max(ep.length for ep in episodes)
     tokens = torch.zeros(len(episodes), t_max + 1, h * w, dtype=torch.long)
@@ -126,9 +124,28 @@ def done_head_eval(wm: WorldModel, episodes: list[Episode], theta: float, text_e
     else:
         control = torch.stack([torch.from_numpy(text_emb[ep.instruction]) for ep in episodes])
     prob = wm.done_for_sequences(tokens.view(len(episodes), t_max + 1, h, w), control).cpu().numpy()
-    probs = np.concatenate([prob[b, : ep.length] for b, ep in enumerate(episodes)])
+    return [prob[b, : ep.length] for b, ep in enumerate(episodes)]
+
+
+@torch.no_grad()
+def done_head_eval(wm: WorldModel, episodes: list[Episode], theta: float, text_emb: dict) -> dict[str, float]:
+    """Done-head metrics of teacher-forced real sequences against the simulator's success (frames 1..T)."""
+    if not episodes:
+        return {}
+    probs = np.concatenate(done_probabilities(wm, episodes, text_emb))
     labels = np.concatenate([ep.done[1:] for ep in episodes])
     return done_metrics(probs, labels, theta)
+
+
+@torch.no_grad()
+def false_alarm_rate(wm: WorldModel, episodes: list[Episode], theta: float, text_emb: dict) -> dict[str, float]:
+    """On episodes that never succeed (near-misses): the fraction whose done probability reaches
+    ``theta`` at some frame (each would end an imagined episode as a success), and the mean peak."""
+    if not episodes:
+        return {}
+    peaks = np.array([p.max() for p in done_probabilities(wm, episodes, text_emb)])
+    return {"false_alarm_rate": float((peaks >= theta).mean()), "mean_peak_prob": float(peaks.mean()),
+            "episodes": len(episodes)}
 
 
 @torch.no_grad()

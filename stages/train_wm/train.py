@@ -11,19 +11,31 @@ from stages.train_wm.data import ClipSampler, random_mask
 from stages.train_wm.model import WorldModelNet
 
 
-def done_loss(logit: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, kind: str) -> torch.Tensor:
-    """Done loss over valid frames. logit/target/valid (B, T). ``bce`` or the paper's ``rmse`` on probabilities."""
-    denom = valid.sum().clamp_min(1.0)
+def done_loss(logit: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, kind: str,
+              balance: bool = False) -> torch.Tensor:
+    """Done loss over valid frames. logit/target/valid (B, T). ``bce`` or the paper's ``rmse`` on probabilities.
+
+    ``balance``: done and not-done frames weigh half each (whichever are present in the batch), so
+    the few success frames at episode ends count as much as the many frames before them.
+    """
     if kind == "bce":
-        return (F.binary_cross_entropy_with_logits(logit, target, reduction="none") * valid).sum() / denom
-    if kind == "rmse":
-        return torch.sqrt(((torch.sigmoid(logit) - target) ** 2 * valid).sum() / denom + 1e-8)
-    raise ValueError(f"done loss must be 'bce' or 'rmse', got {kind!r}")
+        per = F.binary_cross_entropy_with_logits(logit, target, reduction="none")  # (B, T)
+    elif kind == "rmse":
+        per = (torch.sigmoid(logit) - target) ** 2  # (B, T)
+    else:
+        raise ValueError(f"done loss must be 'bce' or 'rmse', got {kind!r}")
+    if balance:
+        pos, neg = valid * (target > 0.5), valid * (target <= 0.5)  # (B, T)
+        parts = [(per * m).sum() / m.sum() for m in (pos, neg) if m.sum() > 0]
+        loss = sum(parts) / max(len(parts), 1) if parts else (per * valid).sum()
+    else:
+        loss = (per * valid).sum() / valid.sum().clamp_min(1.0)
+    return torch.sqrt(loss + 1e-8) if kind == "rmse" else loss
 
 
 # Eq. 5: token cross-entropy plus the done loss (weighted by done_weight in train_world_model)
 def losses(net: WorldModelNet, batch: dict, gen: torch.Generator, done_kind: str,
-           changed_weight: float = 1.0) -> dict[str, torch.Tensor]:
+           changed_weight: float = 1.0, done_balance: bool = False) -> dict[str, torch.Tensor]:
     """Token cross-entropy over hidden target tokens, token accuracy, and the done loss of one batch.
 
     ``changed_weight`` multiplies the cross-entropy of target tokens that differ from the previous
@@ -41,15 +53,19 @@ def losses(net: WorldModelNet, batch: dict, gen: torch.Generator, done_kind: str
     ce = F.cross_entropy(logits.flatten(0, 2), target.flatten(), reduction="none").view(b, t1 - 1, n)
     ce = (ce * weight).sum() / weight.sum().clamp_min(1.0)
     acc = ((logits.argmax(-1) == target).float() * hidden).sum() / hidden.sum().clamp_min(1.0)
-    dl = done_loss(done, batch["done"], valid, done_kind)
+    dl = done_loss(done, batch["done"], valid, done_kind, done_balance)
     return {"ce": ce, "done": dl, "acc": acc}
 
 
 def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, batch_size: int, lr: float,
                       weight_decay: float, done_weight: float, done_kind: str, seed: int, device,
-                      changed_weight: float = 1.0,
-                      progress=None, log=None, desc: str = "") -> dict:
-    """Train ``net`` in place with AdamW (linear warm-up, cosine decay); returns the loss history and time."""
+                      changed_weight: float = 1.0, done_balance: bool = False,
+                      progress=None, log=None, desc: str = "", curves=None) -> dict:
+    """Train ``net`` in place with AdamW (linear warm-up, cosine decay); returns the loss history and time.
+
+    ``curves`` (``stages.common.curves.Curves``), when given, receives the same points as the history
+    under ``<desc>/<loss>`` so the run can be watched in TensorBoard.
+    """
     net.train()
     gen = torch.Generator().manual_seed(seed)
     decay = [p for p in net.parameters() if p.dim() >= 2]
@@ -64,7 +80,7 @@ def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, b
     use_bf16 = torch.device(device).type == "cuda"
     for step in range(steps):
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_bf16):
-            out = losses(net, sampler.sample(batch_size, device), gen, done_kind, changed_weight)
+            out = losses(net, sampler.sample(batch_size, device), gen, done_kind, changed_weight, done_balance)
         loss = out["ce"] + done_weight * out["done"]
         if not torch.isfinite(loss):
             raise FloatingPointError(f"{desc} world-model loss became {loss.item()} at step {step}")
@@ -77,6 +93,10 @@ def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, b
         ema = vals if ema is None else {k: 0.9 * ema[k] + 0.1 * vals[k] for k in vals}
         if step % max(1, steps // 50) == 0 or step == steps - 1:
             history.append({"step": step, **vals})
+            if curves is not None:
+                for k, v in vals.items():
+                    curves.scalar(f"{desc}/{k}", v, step)
+                curves.scalar(f"{desc}/lr", sched.get_last_lr()[0], step)
         if progress is not None:
             progress.update(1)
             progress.postfix(ce=f"{ema['ce']:.3f}", acc=f"{ema['acc']:.2f}", done=f"{ema['done']:.3f}")

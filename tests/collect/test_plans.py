@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from stages.collect.plans import KINDS, Grip, Layout, Move, optimal_plan, suboptimal_plan
+from stages.collect.plans import SUBOPTIMAL_KINDS, Grip, Layout, Move, optimal_plan, suboptimal_plan
 
 DOWN = (0.0, 1.0, 0.0, 0.0)
 LAYOUTS = {
@@ -26,7 +26,7 @@ def _dist_to_polyline(p, pts):
 
 
 @pytest.mark.parametrize("task", sorted(LAYOUTS))
-@pytest.mark.parametrize("kind", KINDS[1:])
+@pytest.mark.parametrize("kind", SUBOPTIMAL_KINDS)
 def test_suboptimal_keeps_the_essential_plan(task, kind):
     opt = optimal_plan(LAYOUTS[task])
     sub = suboptimal_plan(opt, kind, np.random.default_rng(0))
@@ -81,3 +81,23 @@ def test_grasp_disturb_perturbs_near_grasp_and_place(task):
 def test_unknown_kind_errors():
     with pytest.raises(ValueError, match="unknown trajectory kind"):
         suboptimal_plan(optimal_plan(LAYOUTS["push"]), "zigzag", np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("task", sorted(LAYOUTS))
+def test_near_miss_ends_beside_the_goal_after_the_same_approach(task):
+    opt = optimal_plan(LAYOUTS[task])
+    for seed in range(10):
+        miss = suboptimal_plan(opt, "near_miss", np.random.default_rng(seed))
+        assert len(miss) == len(opt) and all(type(a) is type(b) for a, b in zip(miss, opt))
+        same = [a == b for a, b in zip(miss, opt)]
+        roles = [s.role for s in opt if isinstance(s, Move)]
+        first_changed = next(i for i, ok in enumerate(same) if not ok)
+        assert all(same[:first_changed])  # approach and grasp / contact untouched
+        end_opt, end_miss = np.array(_moves(opt)[-2].pose[:3]), np.array(_moves(miss)[-2].pose[:3])
+        if "slide" in roles:  # the slide stops short along its own direction
+            contact = np.array(next(m for m in _moves(opt) if m.role == "contact").pose[:3])
+            travelled = np.linalg.norm(end_miss - contact) / np.linalg.norm(end_opt - contact)
+            assert 0.15 - 1e-9 <= travelled <= 0.6 + 1e-9
+        else:  # released 8-13 cm sideways, at the same height
+            assert 0.08 - 1e-9 <= np.linalg.norm(end_miss[:2] - end_opt[:2]) <= 0.13 + 1e-9
+            assert end_miss[2] == pytest.approx(end_opt[2])

@@ -63,6 +63,63 @@ def test_all_seven_stages_produce_their_artifacts_and_the_report(store):
     wm = json.loads((artifact(store, "train_wm") / "metrics.json").read_text())
     assert wm["proprio/heldout_ind/h1/tcp_error_cm/head"] is not None
     assert rl["ppo/episodes"] > 0  # episodes ended, by the done head or by truncation
+    for stage in ("train_wm", "sft", "rl"):  # training curves for TensorBoard, and the command that shows them
+        assert list((artifact(store, stage) / "tensorboard").glob("events.out.tfevents.*")), stage
+    shown = cli(store, "show", "rl", "--profile", "toy").stdout
+    assert "tensorboard --logdir" in shown
+
+
+def test_near_misses_are_collected_as_negatives_and_never_demonstrations(store):
+    episodes = [json.loads(x) for x in (artifact(store, "collect") / "episodes.jsonl").read_text().splitlines()]
+    misses = {e["episode_id"] for e in episodes if e["kind"] == "near_miss"}
+    assert misses and not any(e["success"] for e in episodes if e["kind"] == "near_miss")
+    split = json.loads((artifact(store, "sft") / "split.json").read_text())
+    demos = {i for ids in split.values() for i in ids}
+    assert demos and not demos & misses
+    wm = json.loads((artifact(store, "train_wm") / "metrics.json").read_text())
+    assert 0.0 <= wm["action_wm/ood/done/near_miss/false_alarm_rate"] <= 1.0
+
+
+def test_success_out_earns_lingering_for_every_reward_module(store):
+    """On real successful episodes, with the toy run's real world model, goals and fitted heads: the
+    discounted return of finishing beats that of hovering in the last frame before success until
+    truncation, for every registered module (the environments pay ``success_return`` on success)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    import torch
+
+    from stages.common.frame_skip import frame_indices
+    from stages.rl import Config
+    from stages.rl.inputs import RLInputs
+    from stages.rl.rewards import REGISTRY, EmbeddingHead, GoalDistance, ProxyCNN, RewardParts, success_return
+    from stages.rl.rewards.fit import frame_set
+
+    ctx = SimpleNamespace(input=lambda name: artifact(store, name), device="cpu")
+    inp = RLInputs.load(ctx, Config())
+    heads = torch.load(artifact(store, "rl") / "reward_heads.pt")
+    parts = RewardParts(GoalDistance(*inp.goal_frames()), {"embedding": EmbeddingHead(inp.wm.spec.dim), "proxy": ProxyCNN()})
+    for name, state in heads.items():
+        parts.heads[name].load_state_dict(state)
+    ids = [i for i, m in inp.meta.items() if m.success and m.kind == "optimal" and m.task in inp.tasks][:3]
+    fs = frame_set(inp.wm, [inp.steps(i) for i in ids], "cpu")
+    decoded, first_decoded = inp.tok.decode(fs.tokens), inp.tok.decode(fs.first_tokens)
+    goal_rows = np.array([inp.env_of(ids[e]) for e in fs.episode])
+    gamma = 0.99
+    for e, eid in enumerate(ids):
+        states = inp.dataset.load_states(eid)
+        success = np.asarray(states["success"])[frame_indices(len(states["action"]), inp.frame_skip)][1:]
+        s = int(np.argmax(success))  # frames 1..T: index of the first successful one
+        horizon = len(success) + 10
+        first, frames = fs.episode_batches(e, decoded, first_decoded, goal_rows)
+        for name, cls in REGISTRY.items():
+            module = cls.build(parts, Config(reward=name, gamma=gamma), num_envs=1)
+            r = module.along(first, frames)  # (T,)
+            prefix = sum(gamma**k * r[k] for k in range(s))
+            finish = prefix + gamma**s * success_return(module.max_step_reward, horizon - (s + 1), gamma)
+            linger = prefix + sum(gamma**k * r[s - 1] for k in range(s, horizon))
+            assert finish >= linger, (name, eid, finish, linger)
+            assert r.max() <= module.max_step_reward + 1e-6, (name, r.max(), module.max_step_reward)
 
 
 def test_second_run_executes_nothing(store):

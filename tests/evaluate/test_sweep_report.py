@@ -20,13 +20,19 @@ def _point(root: Path, reward: str, seed: int, ppo_wins: int, sft_wins: int, sna
     (rl / "snapshots").mkdir(parents=True)
     (rl / "manifest.json").write_text(json.dumps({"duration_s": 100.0 + seed, "key_inputs": {
         "config": {"seed": seed, "reward": reward, "tasks": tasks}}}))
-    (rl / "metrics.json").write_text(json.dumps({"reward": reward, "tasks": tasks, "ppo/seconds": 50.0,
+    (rl / "rl.json").write_text(json.dumps({"reward": reward, "success_payout": True}))
+    (rl / "metrics.json").write_text(json.dumps({"ppo/seconds": 50.0,
                                                  "ppo/env_steps_per_second": 40.0, "ppo/terminated_fraction": 0.1,
                                                  "diagnostics/ind/wm/spearman_progress": 0.5 + seed / 10}))
     (rl / "snapshots" / "index.json").write_text(json.dumps([{"timesteps": 100, "wall_seconds": 10.0 + seed}]))
     (rl / "episodes.json").write_text(json.dumps([{"t": i, "wall": float(i), "return": float(i % 3), "length": 5,
                                                    "terminated": False} for i in range(30)]))
-    arts = {"rl": rl}
+    sft = root / f"sft-{seed}-{'-'.join(tasks)}"  # one SFT policy per (seed, tasks), shared by the rewards
+    if not sft.is_dir():
+        sft.mkdir()
+        (sft / "manifest.json").write_text(json.dumps({"duration_s": 30.0}))
+        (sft / "policy.json").write_text(json.dumps({"tasks": tasks, "frame_skip": 4}))
+    arts = {"rl": rl, "sft": sft}
     if evaluated:
         ev = root / f"ev-{reward}-{seed}"
         ev.mkdir()

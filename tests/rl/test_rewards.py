@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from stages.rl import Config
-from stages.rl.rewards import GoalDistance, StepBatch, WMReward
+from stages.rl.rewards import REGISTRY, GoalDistance, RewardParts, StepBatch, WMReward, success_return
 from tests.rl.tiny import frames
 
 
@@ -68,11 +68,48 @@ def test_goal_index_selects_each_envs_goal(scene):
 
 def test_return_scales_are_checked():
     with pytest.raises(ValueError, match="linger"):
-        Config(alpha=0.5, beta=0.02, max_episode_steps=50)
-    Config(alpha=0.5, beta=0.02, max_episode_steps=50, dense="potential")  # shaping cannot be farmed
-    Config(alpha=2.0, beta=0.02, max_episode_steps=50)
+        Config(alpha=0.5, beta=0.02, max_episode_steps=50, success_payout=False)
+    Config(alpha=0.5, beta=0.02, max_episode_steps=50, dense="potential", success_payout=False)  # shaping cannot be farmed
+    Config(alpha=2.0, beta=0.02, max_episode_steps=50, success_payout=False)
+    Config(alpha=0.5, beta=0.02, max_episode_steps=50)  # the success payout makes finishing worth the most
+    for reward in ("rule", "embedding", "proxy"):  # their per-step reward is positive next to the goal
+        with pytest.raises(ValueError, match="linger"):
+            Config(reward=reward, success_payout=False)
+
+
+def test_success_return_is_the_maximum_for_this_step_and_every_step_left():
+    assert success_return(2.0, 0, 0.9) == pytest.approx(2.0)
+    assert success_return(2.0, 2, 0.9) == pytest.approx(2.0 * (1 + 0.9 + 0.81))
+    assert success_return(1.0, 3, 1.0) == pytest.approx(4.0)
+    assert np.allclose(success_return(1.0, np.array([0, 1]), 0.5), [1.0, 1.5])
 
 
 def test_unknown_reward_module_is_refused():
     with pytest.raises(ValueError, match="reward"):
         Config(reward="lpips")
+
+
+@pytest.mark.parametrize("dense", ["similarity", "potential"])
+def test_diagnostics_along_an_episode_equal_the_env_stepping_the_module(scene, dense):
+    """Diagnostics score episodes with ``along``; the env calls the module step by step: same rewards."""
+    (s3, sw), (g3, gw) = scene
+    t = torch.linspace(0, 1, 5)[:, None, None, None]
+    third, wrist = (1 - t) * s3 + t * g3, (1 - t) * sw + t * gw  # (5, 3, H, W): start -> goal
+    done = np.array([0.0, 0.2, 0.4, 0.7, 0.9])
+    make = lambda: WMReward(GoalDistance(g3, gw), alpha=1.0, beta=0.5, theta_sps=0.5, dense=dense, gamma=0.9)  # noqa: E731
+    first, frames = _batch(third[:1], wrist[:1], done[:1], [0]), _batch(third[1:], wrist[1:], done[1:], [0] * 4)
+    stepped = make()
+    stepped.reset(np.array([0]), first)
+    one_by_one = [stepped(_batch(third[i:i + 1], wrist[i:i + 1], done[i:i + 1], [0]))[0] for i in range(1, 5)]
+    assert np.allclose(make().along(first, frames), one_by_one)
+
+
+def test_every_registered_module_builds_from_the_rl_config(scene):
+    from stages.rl.rewards import EmbeddingHead, ProxyCNN
+
+    (_, _), (g3, gw) = scene
+    parts = RewardParts(GoalDistance(g3, gw), {"embedding": EmbeddingHead(4), "proxy": ProxyCNN()})
+    for name, cls in REGISTRY.items():
+        module = cls.build(parts, Config(reward=name), num_envs=2)
+        assert module.name == name and module.max_step_reward > 0
+        assert cls.needs_head is None or cls.needs_head in parts.heads

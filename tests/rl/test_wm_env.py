@@ -19,11 +19,11 @@ def parts():
     return tok, wm, goals
 
 
-def _vec(parts, n=3, theta_done=0.999, max_steps=5, beta=0.01):
+def _vec(parts, n=3, theta_done=0.999, max_steps=5, beta=0.01, payout_gamma=None, guard=None):
     tok, wm, (g3, gw) = parts
     reward = WMReward(GoalDistance(g3, gw), alpha=1.0, beta=beta, theta_sps=0.5, num_envs=n)
     return WorldModelVecEnv(wm, tok, obs_fn(tok), reward, starts_for(tok), num_envs=n, max_steps=max_steps,
-                            theta_done=theta_done, seed=0)
+                            theta_done=theta_done, seed=0, payout_gamma=payout_gamma, guard=guard)
 
 
 def test_gym_env_passes_sb3_check_env(parts):
@@ -48,6 +48,40 @@ def test_done_head_terminates_episodes(parts):
     env.reset()
     _, _, dones, infos = env.step(np.zeros((3, 7), np.float32))
     assert dones.all() and all(i["terminated_by_done_head"] and not i["TimeLimit.truncated"] for i in infos)
+
+
+def test_a_success_is_paid_the_maximum_for_its_step_and_the_steps_left(parts):
+    plain, paid = _vec(parts, theta_done=1e-6, max_steps=50), _vec(parts, theta_done=1e-6, max_steps=50, payout_gamma=0.9)
+    plain.reset(), paid.reset()
+    _, r_plain, _, _ = plain.step(np.zeros((3, 7), np.float32))
+    _, r_paid, dones, _ = paid.step(np.zeros((3, 7), np.float32))
+    assert dones.all() and np.all(r_plain <= 1.01)  # alpha + beta bounds one step
+    assert np.allclose(r_paid, 1.01 * (1 - 0.9**50) / (1 - 0.9), rtol=1e-5)  # step 1 of 50: itself + 49 left
+
+
+def test_the_guard_penalises_disagreement_and_vetoes_unconfirmed_successes(parts):
+    from stages.rl.guard import DoneEnsemble, Guard, fit_done_ensemble
+
+    tok, wm, _ = parts
+    torch.manual_seed(0)
+    ensemble = DoneEnsemble(wm.spec.dim, heads=4)  # untrained heads disagree
+    rewards = {}
+    for name, guard in (("off", None), ("on", Guard(ensemble, coef=1.0, theta=0.5))):
+        env = _vec(parts, max_steps=50, guard=guard)
+        env.reset()
+        _, rewards[name], _, infos = env.step(np.zeros((3, 7), np.float32))
+    assert np.all(rewards["on"] < rewards["off"])
+    assert np.allclose(rewards["off"] - rewards["on"], [1.01 * i["guard_std"] for i in infos], atol=1e-5)
+    never = DoneEnsemble(wm.spec.dim, heads=2)
+    for head in never.heads:  # an ensemble that never confirms: the done head alone ends nothing
+        torch.nn.init.zeros_(head[-1].weight), torch.nn.init.constant_(head[-1].bias, -10.0)
+    env = _vec(parts, theta_done=1e-6, max_steps=50, guard=Guard(never, coef=0.0, theta=0.5))
+    env.reset()
+    _, _, dones, _ = env.step(np.zeros((3, 7), np.float32))
+    assert not dones.any()
+    h = torch.randn(40, 8)
+    model, losses = fit_done_ensemble(h, h[:, 0] > 0.5, heads=3, steps=60, lr=1e-2, seed=0)
+    assert losses[-1] < losses[0] and model.probs(h).shape == (3, 40)
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])

@@ -7,6 +7,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from stages.rl.rewards.base import StepBatch
 from stages.rl.rewards.heads import EmbeddingHead, ProxyCNN
 
 
@@ -17,9 +18,24 @@ class FrameSet:
     hidden: torch.Tensor  # (M, D) action-WM hidden state, teacher-forced on the real tokens
     done_prob: torch.Tensor  # (M,) action-WM done head
     tokens: torch.Tensor  # (M, h, w)
+    first_tokens: torch.Tensor  # (E, h, w) each episode's initial frame
     reward: torch.Tensor  # (M,) rule reward after the action that led to the frame
+    success: torch.Tensor  # (M,) bool, the simulator's success flag at the frame
     progress: np.ndarray  # (M,) t / T
     episode: np.ndarray  # (M,) index of the episode in the list given
+
+    def episode_batches(self, e: int, decoded: tuple, first_decoded: tuple, goal_rows: np.ndarray) -> tuple[StepBatch, StepBatch]:
+        """(initial frame, frames 1..T) of episode ``e`` as reward-module batches.
+
+        decoded: (third, wrist) (M, 3, H, W) of ``tokens``; first_decoded: the same of ``first_tokens``
+        (E, ...); goal_rows (M,) each frame's goal row.
+        """
+        m = np.nonzero(self.episode == e)[0]
+        first = StepBatch(self.first_tokens[e: e + 1], torch.zeros(1), torch.zeros(1, self.hidden.shape[1]),
+                          goal_rows[m[:1]], first_decoded[0][e: e + 1], first_decoded[1][e: e + 1])
+        frames = StepBatch(self.tokens[m], self.done_prob[m], self.hidden[m], goal_rows[m], decoded[0][m],
+                           decoded[1][m], rule_reward=self.reward[m].numpy().astype(np.float64))
+        return first, frames
 
 
 @torch.no_grad()
@@ -40,19 +56,22 @@ def teacher_forced(wm, tokens: np.ndarray, actions: np.ndarray, device: str) -> 
 
 
 def frame_set(wm, episodes: list, device: str, progress=None) -> FrameSet:
-    """episodes: (tokens (T+1, h, w), actions (T, 7), reward (T,)) per episode."""
-    hs, ds, toks, rs, prog, epi = [], [], [], [], [], []
-    for i, (tokens, actions, reward) in enumerate(episodes):
+    """episodes: (tokens (T+1, h, w), actions (T, 7), reward (T,), success (T,)) per episode."""
+    hs, ds, toks, firsts, rs, ss, prog, epi = [], [], [], [], [], [], [], []
+    for i, (tokens, actions, reward, success) in enumerate(episodes):
         h, d = teacher_forced(wm, tokens, actions, device)
         t = len(actions)
         hs.append(h.cpu()), ds.append(d.cpu())
         toks.append(torch.as_tensor(np.asarray(tokens[1:], dtype=np.int64)))
+        firsts.append(torch.as_tensor(np.asarray(tokens[:1], dtype=np.int64)))
         rs.append(torch.as_tensor(np.asarray(reward, dtype=np.float32)))
+        ss.append(torch.as_tensor(np.asarray(success, dtype=bool)))
         prog.append(np.arange(1, t + 1) / t)
         epi.append(np.full(t, i))
         if progress is not None:
             progress.update(1)
-    return FrameSet(torch.cat(hs), torch.cat(ds), torch.cat(toks), torch.cat(rs), np.concatenate(prog), np.concatenate(epi))
+    return FrameSet(torch.cat(hs), torch.cat(ds), torch.cat(toks), torch.cat(firsts), torch.cat(rs), torch.cat(ss),
+                    np.concatenate(prog), np.concatenate(epi))
 
 
 def _fit(model, inputs, labels: torch.Tensor, steps: int, lr: float, batch: int, seed: int) -> list[float]:
@@ -71,7 +90,8 @@ def _fit(model, inputs, labels: torch.Tensor, steps: int, lr: float, batch: int,
     return losses
 
 
-def fit_embedding_head(fs: FrameSet, *, steps: int, lr: float, seed: int) -> tuple[EmbeddingHead, list[float]]:
+def fit_embedding_head(fs: FrameSet, tokenizer, *, steps: int, lr: float, seed: int) -> tuple[EmbeddingHead, list[float]]:
+    """The head reads the world model's hidden states (``tokenizer`` unused: same signature as ``fit_proxy``)."""
     torch.manual_seed(seed)
     head = EmbeddingHead(fs.hidden.shape[1])
     return head, _fit(head, [fs.hidden], fs.reward, steps, lr, 256, seed)

@@ -2,7 +2,8 @@
 
 ``embedding`` (iVideoGPT-style): an MLP on the action world model's hidden state of a frame.
 ``proxy`` (DiWA-style): a separate small CNN on the (tokenizer-decoded) frame, both views stacked.
-Both predict the rule reward (normalised dense, in [0, 1]) of the frame.
+Both predict the rule reward (normalised dense, in [0, 1]) of the frame; their output is clipped to
+that range, so a success that ends an episode can be paid the maximum for the steps left.
 """
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from stages.rl.rewards.base import RewardModule, StepBatch
+from stages.rl.rewards.base import RewardModule, RewardParts, StepBatch
 
 
 class EmbeddingHead(nn.Module):
@@ -38,22 +39,32 @@ class ProxyCNN(nn.Module):
 
 class EmbeddingReward(RewardModule):
     name = "embedding"
+    needs_head = "embedding"
 
     def __init__(self, head: EmbeddingHead):
         self.head = head.eval()
 
+    @classmethod
+    def build(cls, parts: RewardParts, cfg, num_envs: int) -> "EmbeddingReward":
+        return cls(parts.heads["embedding"])
+
     @torch.no_grad()
     def __call__(self, batch: StepBatch) -> np.ndarray:
-        return self.head(batch.hidden.float()).cpu().numpy().astype(np.float64)
+        return self.head(batch.hidden.float()).clamp(0.0, 1.0).cpu().numpy().astype(np.float64)
 
 
 class ProxyReward(RewardModule):
     name = "proxy"
     needs_frames = True
+    needs_head = "proxy"
 
     def __init__(self, cnn: ProxyCNN):
         self.cnn = cnn.eval()
 
+    @classmethod
+    def build(cls, parts: RewardParts, cfg, num_envs: int) -> "ProxyReward":
+        return cls(parts.heads["proxy"])
+
     @torch.no_grad()
     def __call__(self, batch: StepBatch) -> np.ndarray:
-        return self.cnn(batch.third, batch.wrist).cpu().numpy().astype(np.float64)
+        return self.cnn(batch.third, batch.wrist).clamp(0.0, 1.0).cpu().numpy().astype(np.float64)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from stages.rl.rewards.base import RewardModule, StepBatch
+from stages.rl.rewards.base import RewardModule, RewardParts, StepBatch
 
 
 class GoalDistance:
@@ -40,6 +40,7 @@ class GoalDistance:
 class WMReward(RewardModule):
     name = "wm"
     needs_frames = True
+    stateless = False  # dense: potential remembers the previous frame's potential
 
     def __init__(self, distance: GoalDistance, *, alpha: float, beta: float, theta_sps: float,
                  dense: str = "similarity", gamma: float = 0.99, num_envs: int = 1):
@@ -48,6 +49,13 @@ class WMReward(RewardModule):
         self.distance, self.alpha, self.beta, self.theta = distance, alpha, beta, theta_sps
         self.dense_kind, self.gamma = dense, gamma
         self.prev_phi = np.zeros(num_envs)
+        # similarity and potential steps are both <= 1 (LPIPS distance lies in [0, 1])
+        self.max_step_reward = alpha + beta
+
+    @classmethod
+    def build(cls, parts: RewardParts, cfg, num_envs: int) -> "WMReward":
+        return cls(parts.distance, alpha=cfg.alpha, beta=cfg.beta, theta_sps=cfg.theta_sps, dense=cfg.dense,
+                   gamma=cfg.gamma, num_envs=num_envs)
 
     def sparse(self, batch: StepBatch) -> np.ndarray:
         return (batch.done_prob.cpu().numpy() >= self.theta).astype(np.float64)
@@ -68,3 +76,12 @@ class WMReward(RewardModule):
             dense = self.gamma * phi - self.prev_phi
             self.prev_phi = phi
         return self.alpha * self.sparse(batch) + self.beta * dense
+
+    def dense_along(self, first: StepBatch, frames: StepBatch) -> np.ndarray:
+        """The dense term (T,) along one episode, all frames scored in one batch."""
+        third, wrist = torch.cat([first.third, frames.third]), torch.cat([first.wrist, frames.wrist])
+        d = self.distance(third, wrist, np.concatenate([first.goal_index, frames.goal_index]))  # (T+1,)
+        return 1.0 - d[1:] if self.dense_kind == "similarity" else self.gamma * -d[1:] + d[:-1]
+
+    def along(self, first: StepBatch, frames: StepBatch) -> np.ndarray:
+        return self.alpha * self.sparse(frames) + self.beta * self.dense_along(first, frames)
