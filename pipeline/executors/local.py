@@ -1,4 +1,4 @@
-"""The local executor: nodes in-process, or a spawn-based process pool for independent nodes."""
+"""The local executor: nodes in-process, or a spawn-based process pool for a sweep's independent nodes of one stage."""
 from __future__ import annotations
 
 import multiprocessing as mp
@@ -59,9 +59,14 @@ def pool_map(fn: Callable[[Any], Any], items: Sequence[Any], jobs: int, desc: st
 
 
 class LocalExecutor:
-    """Runs a wave of ready nodes: one at a time in this process (the stage may use ``jobs``
-    workers for its own ``ctx.map``), or, for several independent nodes and ``jobs > 1``, one
-    node per pool worker."""
+    """Runs a wave of ready nodes.
+
+    Nodes of *one* stage (a sweep's fan-out: twelve ``rl`` points) cost about the same, so they share
+    the cores: one node per pool worker, each told ``jobs = 1``. Nodes of *different* stages do not
+    (``sft`` takes two minutes, ``train_wm`` an hour): splitting the cores between them left the long
+    one on one core for the whole hour after the short one ended, so they run one after another in
+    this process, each with all ``jobs`` cores (for its torch threads and its own ``ctx.map``).
+    """
 
     name = "local"
 
@@ -69,13 +74,24 @@ class LocalExecutor:
         self.jobs = jobs
 
     def run_wave(self, payloads: list[dict], on_done: Callable[[dict, dict | None, BaseException | None], None]) -> None:
-        if self.jobs <= 1 or len(payloads) <= 1:
-            for p in payloads:
-                try:
-                    on_done(p, execute_node(p), None)
-                except Exception as e:  # noqa: BLE001 - reported by the runner
-                    on_done(p, None, e)
-            return
+        groups: dict[str, list[dict]] = {}
+        for p in payloads:
+            groups.setdefault(p["stage"], []).append(p)
+        for group in groups.values():
+            if self.jobs <= 1 or len(group) <= 1:
+                for p in group:
+                    self._in_process(p, on_done)
+            else:
+                self._pooled(group, on_done)
+
+    @staticmethod
+    def _in_process(p: dict, on_done) -> None:
+        try:
+            on_done(p, execute_node(p), None)
+        except Exception as e:  # noqa: BLE001 - reported by the runner
+            on_done(p, None, e)
+
+    def _pooled(self, payloads: list[dict], on_done) -> None:
         for p in payloads:
             p["jobs"] = 1  # the pool already uses the cores
         with _pool(min(self.jobs, len(payloads))) as pool:

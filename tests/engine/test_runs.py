@@ -142,12 +142,25 @@ def test_axis_option_narrows_a_sweep(ws):
 
 def test_sweep_with_jobs_uses_a_process_pool(ws):
     ws.cli("sweep", "rewards", "--until", "rl", "--jobs", "2")
-    pids = {}
+    pids, jobs = {}, {}
     for line in ws.exec_log.read_text().splitlines():
-        stage, pid = line.split()
+        stage, pid, n = line.split()
         pids.setdefault(stage, set()).add(pid)
+        jobs.setdefault(stage, set()).add(int(n))
     assert len(pids["rl"]) >= 2  # the 12 rl points ran on more than one worker process
+    assert jobs["rl"] == {1}  # ... and split the cores
     assert Counter(ws.executions())["rl"] == 12
+
+
+def test_a_wave_of_different_stages_runs_them_in_turn_with_every_core(ws):
+    # goals now needs only tokenize, so train_wm and goals are ready together: a short stage beside a
+    # long one must not leave the long one on a single core after the short one ends
+    ws.spec.write_text(ws.spec.read_text().replace("needs: [train_wm], config: {value: 4}",
+                                                   "needs: [tokenize], config: {value: 4}"))
+    ws.cli("run", "--jobs", "2")
+    runs = [line.split() for line in ws.exec_log.read_text().splitlines()]
+    assert {r[0] for r in runs} == {"collect", "tokenize", "train_wm", "goals", "rl", "evaluate"}
+    assert all(r[2] == "2" for r in runs), runs
 
 
 def test_stage_fan_out_with_ctx_map(ws):

@@ -27,7 +27,7 @@ def run_stage(ctx) -> None:
     log = os.environ.get("TEST_EXEC_LOG")
     if log:
         with open(log, "a") as f:
-            f.write(f"{ctx.stage} {os.getpid()}\n")
+            f.write(f"{ctx.stage} {os.getpid()} {ctx.jobs}\n")
     inputs = {name: json.loads((path / "result.json").read_text()) for name, path in sorted(ctx.inputs.items())}
     # Sleeping is driven by the environment, not the config, so a killed run and its rerun share keys.
     if os.environ.get("TEST_SLEEP_STAGE") in (ctx.stage, "*"):
