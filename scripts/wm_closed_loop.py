@@ -1,0 +1,121 @@
+"""Is the world model a faithful environment for a closed-loop policy? The same policy, from the same
+initial state, run closed loop in ManiSkill and inside the action world model, side by side.
+
+For each picked environment: reset the simulator, run the policy (deterministic) closed loop in the
+simulator for ``--steps`` policy steps; independently, tokenize the same first frame and run the
+same policy closed loop inside the action world model (its frames and its proprioception head's
+states are what the policy sees there, as in the rl stage's WorldModelVecEnv). Prints per
+environment: the simulator's success step, the done head's peak probability and the step where it
+first reached theta, and how far the world model's predicted TCP drifted from the simulator's
+(which diverge as soon as the two trajectories do). Writes a frame strip (third view; per
+environment a simulator row over a world-model row, every ``--every`` policy steps).
+
+    PYTHONPATH=. .venv/bin/python scripts/wm_closed_loop.py <collect> <tokenize> <train_wm> <sft> \\
+        [--policy PATH] [--envs 8] [--split ind] [--steps 40] [--every 5] [--out wm_closed_loop.png]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    for name in ("collect", "tokenize", "train_wm", "sft"):
+        ap.add_argument(name, type=Path)
+    ap.add_argument("--policy", type=Path, default=None, help="a policy file (default: the sft artifact's policy)")
+    ap.add_argument("--envs", type=int, default=8)
+    ap.add_argument("--split", choices=["ind", "ood"], default="ind")
+    ap.add_argument("--steps", type=int, default=40, help="policy steps in each environment")
+    ap.add_argument("--every", type=int, default=5, help="strip: one frame every this many policy steps")
+    ap.add_argument("--theta", type=float, default=0.5, help="done-head threshold (rl.theta_done)")
+    ap.add_argument("--seed", type=int, default=3_000_000)
+    ap.add_argument("--out", type=Path, default=Path("wm_closed_loop.png"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+
+    from stages.collect.catalog import read_scenes_json
+    from stages.collect.dataset import read_sim_facts
+    from stages.goals.figure import goal_grid, to_uint8
+    from stages.goals.environments import list_environments
+    from stages.rl.imagined import pick_environments
+    from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.sft import TEXT_EMBEDDINGS, read_policy_json
+    from stages.sft.observation import ObservationFn
+    from stages.sft.policy import POLICY_FILE, act, load_policy
+    from stages.tokenize.tokenizer import load_tokenizer
+    from stages.train_wm.rollout import load_world_model
+
+    tok = load_tokenizer(args.tokenize, "cpu")
+    obs_fn = ObservationFn(tok, json.loads((args.sft / TEXT_EMBEDDINGS).read_text()))
+    wm = load_world_model(args.train_wm, "action", "cpu")
+    policy = load_policy(args.policy or args.sft / POLICY_FILE, "cpu")
+    tasks = read_policy_json(args.sft)["tasks"]
+    scenes, facts = read_scenes_json(args.collect / "scenes.json"), read_sim_facts(args.collect)
+    picked = pick_environments([e for e in list_environments(args.collect) if e.split == args.split and e.task in tasks],
+                               args.envs)
+    specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction) for e in picked]
+    sim = SimTaskEnv(specs, obs_fn, max_steps=args.steps, action_repeat=int(wm.spec.frame_skip),
+                     image_size=facts.image_size, robot_mesh=facts.robot_mesh, keep_frames=True)
+    shown = list(range(0, args.steps + 1, args.every))
+    rows, summary = [], []
+    try:
+        for i, spec in enumerate(specs):
+            seed = args.seed + i
+            # the simulator, closed loop
+            obs, _ = sim.reset(seed=seed, options={"spec": spec})
+            third0, wrist0 = sim.frames[0]
+            sim_frames, sim_tcp, sim_success_at = [third0], [obs["proprio"][:3].copy()], -1
+            for t in range(args.steps):
+                obs, _, term, trunc, info = sim.step(act(policy, {k: v[None] for k, v in obs.items()})[0])
+                sim_frames.append(sim.frames[-1][0])
+                sim_tcp.append(obs["proprio"][:3].copy())
+                if info["success"] and sim_success_at < 0:
+                    sim_success_at = t + 1
+                if term or trunc:
+                    break
+            # the world model, closed loop from the same first frame
+            tokens = torch.as_tensor(tok.encode(third0[None], wrist0[None])).long()  # (1, h, w)
+            roll = wm.rollout(1)
+            roll.reset(tokens)
+            first_obs = sim.reset(seed=seed, options={"spec": spec})[0]
+            proprio = torch.as_tensor(first_obs["proprio"][None])  # (1, 10)
+            wobs = obs_fn.from_tokens(tokens, proprio.numpy(), [sim.instruction])
+            wm_tokens, wm_tcp, peak, done_at = [tokens[0]], [proprio[0, :3].numpy().copy()], 0.0, -1
+            for t in range(args.steps):
+                a = torch.as_tensor(act(policy, wobs))
+                a = torch.minimum(torch.maximum(a, wm.net.action_low), wm.net.action_high)
+                out = roll.step(a)
+                proprio = wm.next_proprio(proprio, a, out.tokens)
+                p = float(out.done_prob[0])
+                peak = max(peak, p)
+                if p >= args.theta and done_at < 0:
+                    done_at = t + 1
+                wm_tokens.append(out.tokens[0])
+                wm_tcp.append(proprio[0, :3].numpy().copy())
+                wobs = obs_fn.from_tokens(out.tokens, proprio.numpy(), [sim.instruction])
+            n = min(len(sim_tcp), len(wm_tcp))
+            drift = [float(np.linalg.norm(wm_tcp[t] - sim_tcp[t]) * 10) for t in range(n)]  # dm -> cm
+            summary.append({"env": spec.key, "sim_success_at": sim_success_at, "wm_done_at": done_at,
+                            "wm_peak_done": round(peak, 3),
+                            "tcp_drift_cm": {t: round(drift[t], 1) for t in (5, 10, 20, n - 1) if t < n}})
+            wm_third, _ = tok.decode(torch.stack(wm_tokens))  # (T+1, 3, S, S) in [0, 1]
+            rows.append((f"{spec.task} sim (success@{sim_success_at})",
+                         [sim_frames[t] if t < len(sim_frames) else None for t in shown]))
+            rows.append((f"world model (done@{done_at}, peak {peak:.2f})", [to_uint8(wm_third[t]) for t in shown]))
+            print(json.dumps(summary[-1]), flush=True)
+    finally:
+        sim.close()
+    goal_grid(rows, [f"t={t}" for t in shown], args.out, max_rows=len(rows))
+    sims = sum(s["sim_success_at"] > 0 for s in summary)
+    dones = sum(s["wm_done_at"] > 0 for s in summary)
+    print(f"{len(summary)} {args.split.upper()} environments: simulator success {sims}, world-model done {dones}; "
+          f"strip: {args.out}")
+
+
+if __name__ == "__main__":
+    main()
