@@ -12,6 +12,7 @@ Outputs (in the artifact directory):
     metrics.json   PSNR / SSIM / LPIPS per view on held-out IND and on OOD frames, codebook usage
                    (fraction of codes used, perplexity), loss history, training time
     recon.png      real vs reconstructed strips (held-out IND and OOD, both views)
+    tensorboard/   the training curves (losses, learning rate) as TensorBoard event files
 
 Key includes:
     this config (architecture, loss weights, steps, seed) and the collect artifact's key. Device and
@@ -31,6 +32,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.context import StageContext
+from stages.common.curves import Curves
 from stages.tokenize import train as training
 from stages.tokenize.model import ModelSpec, TokenizerNet
 from stages.tokenize.store import TOKENS, TokenStore, write_index
@@ -140,8 +142,9 @@ def run(ctx: StageContext) -> None:
     third, wrist = _load_frames(ds, train_eps, cfg.max_train_frames, rng)
     ctx.log.info("tokenize: training on %d frames of %s", len(third), third.shape[1:])
     net = TokenizerNet(cfg.spec())
-    with ctx.progress(cfg.steps, "tokenize train", unit="step") as bar:
-        hist = training.train(net, third, wrist, cfg.settings(), seed=cfg.seed, device=ctx.device, progress=bar, log=ctx.log)
+    with ctx.progress(cfg.steps, "tokenize train", unit="step") as bar, Curves(ctx.out) as curves:
+        hist = training.train(net, third, wrist, cfg.settings(), seed=cfg.seed, device=ctx.device, progress=bar,
+                              log=ctx.log, curves=curves)
     del third, wrist
     save_checkpoint(net.cpu(), ctx.out)
     net.to(ctx.device)

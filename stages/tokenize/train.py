@@ -69,8 +69,13 @@ def train(
     device: str = "cpu",
     progress=None,
     log=None,
+    curves=None,
 ) -> TrainLog:
-    """Train ``net`` in place on uint8 frames third/wrist (N, H, W, 3); returns the loss history."""
+    """Train ``net`` in place on uint8 frames third/wrist (N, H, W, 3); returns the loss history.
+
+    ``curves`` (``stages.common.curves.Curves``), when given, receives every history point as
+    ``tokenizer/<loss>`` (and the learning rate) so the run can be watched in TensorBoard.
+    """
     if len(third) == 0:
         raise ValueError("tokenizer training got no frames: no IND training episodes in the collect artifact?")
     net.to(device).train()
@@ -107,6 +112,10 @@ def train(
             for k in acc:
                 getattr(hist, k).append(acc[k] / n)
                 acc[k] = 0.0
+                if curves is not None:
+                    curves.scalar(f"tokenizer/{k}", getattr(hist, k)[-1], step + 1)
+            if curves is not None:
+                curves.scalar("tokenizer/lr", lr_at(step, s), step + 1)
             if log is not None and len(hist.recon) % 10 == 0:
                 log.info("tokenize step %d/%d recon %.4f lpips %.4f entropy %.3f", step + 1, s.steps, hist.recon[-1], hist.lpips[-1], hist.entropy[-1])
         if progress is not None:

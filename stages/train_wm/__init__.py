@@ -24,6 +24,7 @@ Outputs (in the artifact directory):
                                negatives; the text WM trains on the other episodes only);
                                proprioception head: TCP error (cm) at horizons 1, 5, 15 vs copy-last
     frames.png                 real vs predicted frame strips (held-out IND and OOD)
+    tensorboard/               training curves (both world models' losses, the proprioception head's)
 
 Key includes:
     this config (architecture, optimisation, decoding, evaluation sizes, seed) and the keys of the

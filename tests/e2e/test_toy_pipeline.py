@@ -63,7 +63,7 @@ def test_all_seven_stages_produce_their_artifacts_and_the_report(store):
     wm = json.loads((artifact(store, "train_wm") / "metrics.json").read_text())
     assert wm["proprio/heldout_ind/h1/tcp_error_cm/head"] is not None
     assert rl["ppo/episodes"] > 0  # episodes ended, by the done head or by truncation
-    for stage in ("train_wm", "sft", "rl"):  # training curves for TensorBoard, and the command that shows them
+    for stage in ("tokenize", "train_wm", "sft", "rl"):  # training curves for TensorBoard, and the command that shows them
         assert list((artifact(store, stage) / "tensorboard").glob("events.out.tfevents.*")), stage
     shown = cli(store, "show", "rl", "--profile", "toy").stdout
     assert "tensorboard --logdir" in shown
