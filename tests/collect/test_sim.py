@@ -98,16 +98,18 @@ def test_stage_run_writes_a_readable_artifact(sims, tmp_path):
     out.mkdir()
     run(StageContext(stage="collect", config=cfg, inputs={}, out=out, seed=0))
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["episodes"] == metrics["episodes_planned"] == 4
-    assert metrics["episodes_by_split"] == {"ind": 2, "ood": 2}
+    # per split: one optimal, one suboptimal, one near-miss (the done head's negative, near_miss_per_scene=1)
+    assert metrics["episodes"] == metrics["episodes_planned"] == 6
+    assert metrics["episodes_by_split"] == {"ind": 3, "ood": 3}
+    assert metrics["episodes_by_kind"]["near_miss"] == 2
     assert metrics["replay_success_rate"] == 1.0 and metrics["replayed"] == 2
     ds = Dataset(out)
     assert {m.split for m in ds.episodes} == {"ind", "ood"}
-    assert all(m.success for m in ds.episodes)
+    assert all(m.success != (m.kind == "near_miss") for m in ds.episodes)  # demonstrations succeed, near-misses fail
     scenes = json.loads((out / "scenes.json").read_text())["scenes"]
     by_id = {s["scene_id"]: s for s in scenes}
     assert all(by_id[m.scene_id]["split"] == m.split for m in ds.episodes)
-    ep = ds.load(ds.episodes[0].episode_id)
+    ep = ds.load(next(m for m in ds.episodes if m.kind == "optimal").episode_id)
     assert ep.third.shape[1:] == (64, 64, 3) and ep.success[-1]
     sheet = render(out, n_frames=4, scale=1)
     assert sheet.width == 4 * 64

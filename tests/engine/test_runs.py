@@ -141,7 +141,8 @@ def test_axis_option_narrows_a_sweep(ws):
 
 
 def test_sweep_with_jobs_uses_a_process_pool(ws):
-    ws.cli("sweep", "rewards", "--until", "rl", "--jobs", "2")
+    # each rl point takes a second, so the second worker gets work even when the first one started early
+    ws.cli("sweep", "rewards", "--until", "rl", "--jobs", "2", TEST_SLEEP_STAGE="rl", TEST_SLEEP="1")
     pids, jobs = {}, {}
     for line in ws.exec_log.read_text().splitlines():
         stage, pid, n = line.split()
