@@ -13,7 +13,6 @@ precision with its Wilson 95% interval, and one line per environment.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import torch
@@ -32,29 +31,15 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-    from stages.collect.catalog import read_scenes_json
-    from stages.collect.dataset import read_sim_facts
-    from stages.goals.environments import list_environments
-    from stages.rl.imagined import imagine_and_replay, pick_environments, precision_metrics
-    from stages.rl.sim_env import SimSpec, SimTaskEnv
-    from stages.sft import TEXT_EMBEDDINGS, read_policy_json
-    from stages.sft.observation import ObservationFn
-    from stages.sft.policy import POLICY_FILE, load_policy
-    from stages.tokenize.tokenizer import load_tokenizer
-    from stages.train_wm.rollout import load_world_model
+    from policy_check import load_check
 
-    tok = load_tokenizer(args.tokenize, "cpu")
-    obs_fn = ObservationFn(tok, json.loads((args.sft / TEXT_EMBEDDINGS).read_text()))
-    wm = load_world_model(args.train_wm, "action", "cpu")
+    from stages.rl.imagined import imagine_and_replay, precision_metrics
+    from stages.sft.policy import POLICY_FILE
+
     path = {"ppo": args.rl / "policy.zip", "sft": args.sft / POLICY_FILE}.get(args.policy, args.rl / args.policy)
-    policy = load_policy(path, "cpu")
-    tasks = read_policy_json(args.sft)["tasks"]
-    scenes, facts = read_scenes_json(args.collect / "scenes.json"), read_sim_facts(args.collect)
-    picked = pick_environments([e for e in list_environments(args.collect) if e.split == args.split and e.task in tasks],
-                               args.envs)
-    specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction) for e in picked]
-    sim = SimTaskEnv(specs, obs_fn, max_steps=args.steps, action_repeat=int(wm.spec.frame_skip),
-                     image_size=facts.image_size, robot_mesh=facts.robot_mesh)
+    c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, path, split=args.split, envs=args.envs,
+                   steps=args.steps)
+    tok, obs_fn, wm, policy, specs, sim = c.tok, c.obs_fn, c.wm, c.policy, c.specs, c.sim
     try:
         rows = imagine_and_replay(policy, wm, tok, obs_fn, sim, specs, [args.seed + i for i in range(len(specs))],
                                   args.steps, args.theta)

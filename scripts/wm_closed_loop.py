@@ -38,29 +38,14 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-    from stages.collect.catalog import read_scenes_json
-    from stages.collect.dataset import read_sim_facts
-    from stages.goals.figure import goal_grid, to_uint8
-    from stages.goals.environments import list_environments
-    from stages.rl.imagined import pick_environments
-    from stages.rl.sim_env import SimSpec, SimTaskEnv
-    from stages.sft import TEXT_EMBEDDINGS, read_policy_json
-    from stages.sft.observation import ObservationFn
-    from stages.sft.policy import POLICY_FILE, act, load_policy
-    from stages.tokenize.tokenizer import load_tokenizer
-    from stages.train_wm.rollout import load_world_model
+    from policy_check import load_check
 
-    tok = load_tokenizer(args.tokenize, "cpu")
-    obs_fn = ObservationFn(tok, json.loads((args.sft / TEXT_EMBEDDINGS).read_text()))
-    wm = load_world_model(args.train_wm, "action", "cpu")
-    policy = load_policy(args.policy or args.sft / POLICY_FILE, "cpu")
-    tasks = read_policy_json(args.sft)["tasks"]
-    scenes, facts = read_scenes_json(args.collect / "scenes.json"), read_sim_facts(args.collect)
-    picked = pick_environments([e for e in list_environments(args.collect) if e.split == args.split and e.task in tasks],
-                               args.envs)
-    specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction) for e in picked]
-    sim = SimTaskEnv(specs, obs_fn, max_steps=args.steps, action_repeat=int(wm.spec.frame_skip),
-                     image_size=facts.image_size, robot_mesh=facts.robot_mesh, keep_frames=True)
+    from stages.goals.figure import goal_grid, to_uint8
+    from stages.sft.policy import POLICY_FILE, act
+
+    c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, args.policy or args.sft / POLICY_FILE,
+                   split=args.split, envs=args.envs, steps=args.steps, keep_frames=True)
+    tok, obs_fn, wm, policy, specs, sim = c.tok, c.obs_fn, c.wm, c.policy, c.specs, c.sim
     shown = list(range(0, args.steps + 1, args.every))
     rows, summary = [], []
     try:
@@ -69,7 +54,8 @@ def main() -> None:
             # the simulator, closed loop
             obs, _ = sim.reset(seed=seed, options={"spec": spec})
             third0, wrist0 = sim.frames[0]
-            sim_frames, sim_tcp, sim_success_at = [third0], [obs["proprio"][:3].copy()], -1
+            proprio0 = obs["proprio"].copy()  # (10,) the world model starts from the same robot state
+            sim_frames, sim_tcp, sim_success_at = [third0], [proprio0[:3]], -1
             for t in range(args.steps):
                 obs, _, term, trunc, info = sim.step(act(policy, {k: v[None] for k, v in obs.items()})[0])
                 sim_frames.append(sim.frames[-1][0])
@@ -82,8 +68,7 @@ def main() -> None:
             tokens = torch.as_tensor(tok.encode(third0[None], wrist0[None])).long()  # (1, h, w)
             roll = wm.rollout(1)
             roll.reset(tokens)
-            first_obs = sim.reset(seed=seed, options={"spec": spec})[0]
-            proprio = torch.as_tensor(first_obs["proprio"][None])  # (1, 10)
+            proprio = torch.as_tensor(proprio0[None])  # (1, 10)
             wobs = obs_fn.from_tokens(tokens, proprio.numpy(), [sim.instruction])
             wm_tokens, wm_tcp, peak, done_at = [tokens[0]], [proprio[0, :3].numpy().copy()], 0.0, -1
             for t in range(args.steps):

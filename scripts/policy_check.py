@@ -1,0 +1,43 @@
+"""What scripts/replay_imagined.py and scripts/wm_closed_loop.py both load: the tokenizer, the
+observation function, the action world model, a policy, and a simulator over picked environments."""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass
+class PolicyCheck:
+    tok: object  # stages.tokenize.tokenizer.Tokenizer
+    obs_fn: object  # stages.sft.observation.ObservationFn
+    wm: object  # stages.train_wm.rollout.WorldModel (the action WM)
+    policy: object
+    specs: list  # stages.rl.sim_env.SimSpec, one per picked environment
+    sim: object  # stages.rl.sim_env.SimTaskEnv over ``specs`` (close it)
+
+
+def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_path: Path, *, split: str,
+               envs: int, steps: int, keep_frames: bool = False) -> PolicyCheck:
+    """``envs`` environments of ``split`` (round-robin over the SFT policy's tasks), on CPU."""
+    from stages.collect.catalog import read_scenes_json
+    from stages.collect.dataset import read_sim_facts
+    from stages.goals.environments import list_environments
+    from stages.rl.imagined import pick_environments
+    from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.sft import TEXT_EMBEDDINGS, read_policy_json
+    from stages.sft.observation import ObservationFn
+    from stages.sft.policy import load_policy
+    from stages.tokenize.tokenizer import load_tokenizer
+    from stages.train_wm.rollout import load_world_model
+
+    tok = load_tokenizer(tokenize, "cpu")
+    obs_fn = ObservationFn(tok, json.loads((sft / TEXT_EMBEDDINGS).read_text()))
+    wm = load_world_model(train_wm, "action", "cpu")
+    tasks = read_policy_json(sft)["tasks"]
+    scenes, facts = read_scenes_json(collect / "scenes.json"), read_sim_facts(collect)
+    picked = pick_environments([e for e in list_environments(collect) if e.split == split and e.task in tasks], envs)
+    specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction) for e in picked]
+    sim = SimTaskEnv(specs, obs_fn, max_steps=steps, action_repeat=int(wm.spec.frame_skip),
+                     image_size=facts.image_size, robot_mesh=facts.robot_mesh, keep_frames=keep_frames)
+    return PolicyCheck(tok, obs_fn, wm, load_policy(policy_path, "cpu"), specs, sim)
