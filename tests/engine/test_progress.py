@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import io
 import sys
+import time
 
 from pipeline.progress import Progress
 
@@ -71,3 +72,35 @@ def test_silenced_by_environment_or_flag(monkeypatch):
     monkeypatch.setenv("PIPELINE_PROGRESS", "1")
     with Progress(10, "x") as forced:
         assert forced.mode == "bar"
+
+
+def test_the_heartbeat_prints_while_one_item_takes_long(monkeypatch):
+    bar, clock, out = _progress(monkeypatch, total=10, heartbeat=False)
+    clock.t += 29.0
+    assert not bar.beat() and out.getvalue() == ""  # under an interval: quiet
+    clock.t += 6.0  # 35 s and not one item finished
+    assert bar.beat()
+    assert out.getvalue() == "  train_wm: steps 0/10 (0%), 0 it/s, working on the first it\n"
+    assert not bar.beat()  # the heartbeat restarted the interval
+    bar.update(1)
+    clock.t += 40.0
+    assert bar.beat()
+    assert out.getvalue().splitlines()[-1] == "  train_wm: steps 1/10 (10%), 75 s/it, ETA 0:11:15, working, last it 0:00:40 ago"
+    bar.close()
+    assert not bar.beat()  # closed: silent
+
+
+def test_the_heartbeat_thread_keeps_a_log_alive_and_stops_at_close(monkeypatch):
+    monkeypatch.delenv("PIPELINE_PROGRESS", raising=False)
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    out = io.StringIO()
+    with Progress(3, "evaluate: episodes", stream=out, interval=0.05) as bar:
+        time.sleep(0.5)  # one slow item, no update at all
+        assert bar._thread.is_alive()
+        beats = out.getvalue().count("\n")
+        assert 3 <= beats <= 11, out.getvalue()
+        assert "working on the first it" in out.getvalue()
+    assert not bar._thread.is_alive()
+    after = out.getvalue()
+    time.sleep(0.2)
+    assert out.getvalue() == after  # nothing printed once closed
