@@ -17,6 +17,7 @@ from stages.evaluate.report import html_table, image_section, markdown_table, su
 from stages.evaluate.writeup import METHODS
 from stages.sweep_report.figures import rollout_strips, success_vs_time, training_curves
 from stages.sweep_report.gather import PointRun, gather
+from stages.sweep_report.paired import by_split, fmt_difference, pair_up
 
 ORDER = ["sft", "rule", "wm", "embedding", "proxy"]
 LABELS = {"sft": "Supervised finetune (SFT)", **METHODS}
@@ -65,6 +66,32 @@ def _success_sections(runs: list[PointRun]) -> list[tuple[str, str, str]]:
                  f"Table 2 layout: one multi-task policy ({', '.join(tasks)})") + ", seeds pooled"
         sections.append(_section(title, note, header, body))
     return sections
+
+
+def _paired_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
+    """Each method minus the SFT policy it started from, on the same initial states, per seed and pooled."""
+    paired: dict[str, list] = {}
+    per_seed: dict[tuple[str, str], list] = {}
+    for run in runs:
+        ppo = [r for r in run.results if r["policy"] == "ppo"]
+        sft = [r for r in run.results if r["policy"] == "sft"]
+        pairs = pair_up(ppo, sft)
+        paired.setdefault(run.method, []).extend(pairs)
+        per_seed.setdefault((run.method, str(run.seed)), []).extend(pairs)
+    if not any(paired.values()):
+        return None
+    splits = [s for s in ("ind", "ood", "extra") if any(r["split"] == s for v in paired.values() for r, _ in v)]
+    header = ["method", "seed"] + [s.upper() for s in splits]
+    body = []
+    for method in [m for m in ORDER if paired.get(m)]:
+        seeds = sorted(seed for m, seed in per_seed if m == method)
+        for seed in seeds + (["pooled"] if len(seeds) > 1 else []):
+            res = by_split(paired[method] if seed == "pooled" else per_seed[(method, seed)])
+            body.append([LABELS[method], seed] + [fmt_difference(res[(s,)]) if (s,) in res else "-" for s in splits])
+    note = ("Success of the PPO policy minus success of the SFT policy it started from, episode by episode on the "
+            "same initial states (tasks pooled): mean [95% interval of the paired differences]; 'better' / 'worse' "
+            "count the states only PPO / only SFT solved. An interval above 0 is an improvement on SFT.")
+    return _section("PPO minus SFT, paired on the same initial states", note, header, body)
 
 
 def _per_run_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
@@ -217,6 +244,7 @@ def report(points: list[dict], out: Path) -> Path:
     sections = []
     if runs:
         sections += _success_sections(runs)
+        sections += [s for s in (_paired_section(runs),) if s]
         sections += [s for s in (_per_run_section(runs), _cost_section(runs), _diagnostics_section(runs)) if s]
         sections += _figure_sections(runs, out)
     write_report(out, "RoboScape-R sweep report",

@@ -59,7 +59,7 @@ def test_pooled_counts_sft_once_per_seed_and_figures(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     md = report(points, out).read_text()
-    table = md.split("## Per-run")[0]  # the pooled success table comes first
+    table = md.split("## PPO minus SFT")[0]  # the pooled success table comes first
     rows = {line.split(" | ")[0].lstrip("| "): line for line in table.splitlines() if line.startswith("| ")}
     # wm: 1 + 3 of 8 IND (two seeds pooled); push gets the even-indexed wins: seed 0 -> 1 of 2, seed 1 -> 2 of 2
     assert "0.50 [0.22, 0.78] (4/8)" in rows["PPO in world model (WM reward, ours)"]
@@ -91,3 +91,32 @@ def test_no_committed_point_writes_a_clear_empty_report(tmp_path):
     out.mkdir()
     md = report([{"values": {}, "label": "p", "artifacts": {"rl": tmp_path / "missing"}}], out).read_text()
     assert "No point has a committed rl artifact yet" in md
+
+
+def test_paired_differences_match_episodes_by_initial_state():
+    from stages.sweep_report.paired import pair_up, paired_difference
+
+    sft = [{"task": "push", "split": "ind", "scene_id": "a", "seed": i, "success": i < 2} for i in range(4)]
+    ppo = [{"task": "push", "split": "ind", "scene_id": "a", "seed": i, "success": i != 0} for i in reversed(range(4))]
+    ppo.append({"task": "push", "split": "ind", "scene_id": "b", "seed": 0, "success": True})  # SFT never ran it
+    pairs = pair_up(ppo, sft)
+    assert len(pairs) == 4  # by initial state, not by order; the unmatched episode is left out
+    res = paired_difference([(bool(r["success"]), base) for r, base in pairs])
+    # differences: seed 0: 0-1, seed 1: 1-1, seeds 2 and 3: 1-0 -> mean 0.25, sd 0.957, half-width 0.938
+    assert res["n"] == 4 and res["better"] == 2 and res["worse"] == 1
+    assert abs(res["diff"] - 0.25) < 1e-9 and abs(res["lo"] - (0.25 - 0.938)) < 1e-3 and res["hi"] == 1.0
+    assert paired_difference([])["n"] == 0
+
+
+def test_the_paired_section_reports_ppo_minus_its_own_sft(tmp_path):
+    points = [_point(tmp_path, "rule", 0, ppo_wins=4, sft_wins=0, snap_wins=0),
+              _point(tmp_path, "rule", 1, ppo_wins=1, sft_wins=1, snap_wins=0)]
+    out = tmp_path / "out"
+    out.mkdir()
+    md = report(points, out).read_text()
+    section = md.split("## PPO minus SFT, paired on the same initial states")[1].split("## ")[0]
+    rows = [line for line in section.splitlines() if line.startswith("| PPO in ManiSkill")]
+    assert len(rows) == 3  # seed 0, seed 1, pooled
+    assert "+1.00 [+1.00, +1.00] (n=4, 4 better / 0 worse)" in rows[0]  # every state: PPO solved, SFT did not
+    assert "+0.00 [+0.00, +0.00] (n=4, 0 better / 0 worse)" in rows[1]
+    assert "+0.50" in rows[2] and "n=8, 4 better / 0 worse" in rows[2]

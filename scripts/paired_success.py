@@ -1,0 +1,59 @@
+"""PPO minus SFT, paired on the same initial states, from evaluate artifacts given by path.
+
+The sweep report does this for a sweep's points; this script does it for any evaluate artifacts,
+e.g. PPO policies evaluated with ``evaluate.policies: [ppo]`` against the SFT episodes of another
+evaluate artifact with the same ``evaluate.seed`` and ``episodes`` (hence the same initial states):
+
+    .venv/bin/python scripts/paired_success.py --sft <evaluate dir> <evaluate dir> [<evaluate dir> ...]
+
+Prints, per evaluate artifact and pooled, the success difference per split (tasks pooled) and per
+task and split: mean [95% interval] (n, states only PPO solved / only SFT solved).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from stages.sweep_report.paired import by_split, fmt_difference, pair_up  # noqa: E402
+
+
+def results(ev: Path, policy: str) -> list[dict]:
+    path = Path(ev) / "results.jsonl"
+    if not path.is_file():
+        raise SystemExit(f"{path} is missing: is {ev} a committed evaluate artifact?")
+    return [r for r in map(json.loads, path.read_text().splitlines()) if r["policy"] == policy]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sft", type=Path, required=True, help="evaluate artifact whose 'sft' episodes are the baseline")
+    ap.add_argument("evaluate", type=Path, nargs="+", help="evaluate artifacts whose 'ppo' episodes are compared")
+    ap.add_argument("--policy", default="ppo", help="policy name in results.jsonl to compare (default ppo)")
+    args = ap.parse_args()
+    sft = results(args.sft, "sft")
+    if not sft:
+        raise SystemExit(f"{args.sft} has no 'sft' episodes")
+    pooled = []
+    for ev in args.evaluate:
+        pairs = pair_up(results(ev, args.policy), sft)
+        if not pairs:
+            print(f"{ev}: no episode shares an initial state with {args.sft} (another evaluate seed or episode count?)")
+            continue
+        pooled += pairs
+        print(f"{ev.name[:12]}: {len(pairs)} paired episodes")
+        for (split,), res in by_split(pairs).items():
+            print(f"  {split:5s} {fmt_difference(res)}")
+        for (task, split), res in by_split(pairs, ("task", "split")).items():
+            print(f"    {task:12s} {split:5s} {fmt_difference(res)}")
+    if len(args.evaluate) > 1 and pooled:
+        print("pooled:")
+        for (split,), res in by_split(pooled).items():
+            print(f"  {split:5s} {fmt_difference(res)}")
+
+
+if __name__ == "__main__":
+    main()
