@@ -7,7 +7,9 @@ On top of SB3's PPO, three guards, each set in the rl config (docs/rl.md):
     of the unchanged SFT policy, so the first policy gradients use a value function that fits it;
   - ``target_kl``: SB3's early stop of an update's epochs once the policy moved that far;
   - ``kl_coef``: after each update, a pass over the rollout minimising
-    ``kl_coef * KL(pi_sft(.|s) || pi(.|s))``, a pull back towards the SFT policy.
+    ``kl_coef * KL(pi_sft(.|s) || pi(.|s))``, a pull back towards the SFT policy;
+  - ``critic_lr_scale``: the critic's learning rate is the actor's times this (one Adam, two
+    parameter groups), so a small actor step size does not leave the value function unfitted.
 Reward normalisation (``normalize_reward``) is the environment's: SB3's ``VecNormalize``.
 """
 from __future__ import annotations
@@ -34,9 +36,16 @@ def critic_parameters(policy: TaskPolicy) -> set[int]:
 class SFTPPO(PPO):
     """PPO with a critic-only warm-up and a KL pull towards a frozen copy of the starting policy."""
 
-    def __init__(self, *args, value_warmup_updates: int = 0, kl_coef: float = 0.0, **kwargs):
+    def __init__(self, *args, value_warmup_updates: int = 0, kl_coef: float = 0.0, critic_lr_scale: float = 1.0, **kwargs):
         super().__init__(*args, **kwargs)
         self.value_warmup_updates, self.kl_coef = value_warmup_updates, kl_coef
+        if critic_lr_scale != 1.0:
+            critic = critic_parameters(self.policy)
+            params = list(self.policy.parameters())
+            groups = [{"params": [p for p in params if id(p) not in critic], "lr_scale": 1.0},
+                      {"params": [p for p in params if id(p) in critic], "lr_scale": critic_lr_scale}]
+            self.policy.optimizer = self.policy.optimizer_class(groups, lr=self.lr_schedule(1),
+                                                                **self.policy.optimizer_kwargs)
         self.updates_done = 0
         self.reference: TaskPolicy | None = None
         self.kl_history: list[float] = []
@@ -47,6 +56,14 @@ class SFTPPO(PPO):
         self.reference = copy.deepcopy(self.policy).eval()
         for p in self.reference.parameters():
             p.requires_grad_(False)
+
+    def _update_learning_rate(self, optimizers) -> None:
+        # SB3 sets one rate on every parameter group; here each group keeps its scale (critic_lr_scale)
+        lr = self.lr_schedule(self._current_progress_remaining)
+        self.logger.record("train/learning_rate", lr)
+        for optimizer in optimizers if isinstance(optimizers, list) else [optimizers]:
+            for group in optimizer.param_groups:
+                group["lr"] = lr * group.get("lr_scale", 1.0)
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "reference", "curves"]  # policy.zip: the fine-tuned policy
@@ -97,10 +114,13 @@ def make_ppo(env, cfg, sft_policy: TaskPolicy, sft_info: dict, device: str) -> S
     # layer would make the probability ratio compare two different networks (SFT's weights are kept as they are)
     fe = {**sft_info["policy_kwargs"]["features_extractor_kwargs"], "dropout": 0.0}
     kwargs = {**sft_info["policy_kwargs"], "features_extractor_kwargs": fe, "features_extractor_class": LatentExtractor}
-    model = SFTPPO(TaskPolicy, env, n_steps=cfg.n_steps, batch_size=cfg.batch_size, n_epochs=cfg.n_epochs,
+    # a minibatch larger than the rollout is the whole rollout (SB3 would warn about the remainder)
+    batch_size = min(cfg.batch_size, cfg.n_steps * env.num_envs)
+    model = SFTPPO(TaskPolicy, env, n_steps=cfg.n_steps, batch_size=batch_size, n_epochs=cfg.n_epochs,
                    learning_rate=cfg.learning_rate, gamma=cfg.gamma, gae_lambda=0.95, clip_range=cfg.clip_range,
                    ent_coef=cfg.ent_coef, target_kl=cfg.target_kl, seed=cfg.seed, device=device, verbose=0,
-                   policy_kwargs=kwargs, value_warmup_updates=cfg.value_warmup_updates, kl_coef=cfg.kl_coef)
+                   policy_kwargs=kwargs, value_warmup_updates=cfg.value_warmup_updates, kl_coef=cfg.kl_coef,
+                   critic_lr_scale=cfg.critic_lr_scale)
     model.policy.load_state_dict(sft_policy.state_dict())
     model.keep_reference()
     # a logger without outputs: SB3's default one creates an empty /tmp/SB3-<time> directory per learn()

@@ -56,3 +56,16 @@ def test_the_kl_pull_runs_after_each_policy_update_against_the_frozen_sft_copy()
     model.learn(total_timesteps=32)
     assert len(model.kl_history) == 2 and all(np.isfinite(model.kl_history))
     assert all(torch.equal(a, b) for a, b in zip(ref, model.reference.parameters()))  # the reference never moves
+
+
+def test_the_critic_learning_rate_is_scaled_and_survives_sb3s_schedule():
+    torch.manual_seed(0)
+    model = _model(value_warmup_updates=0, learning_rate=1e-5, critic_lr_scale=10.0)
+    model.learn(total_timesteps=16)  # SB3 resets the optimizer's rates before every update
+    critic = critic_parameters(model.policy)
+    rates = {("critic" if id(g["params"][0]) in critic else "actor"): g["lr"] for g in model.policy.optimizer.param_groups}
+    assert rates == {"actor": 1e-5, "critic": 1e-4}
+    assert sum(len(g["params"]) for g in model.policy.optimizer.param_groups) == len(list(model.policy.parameters()))
+    plain = _model(value_warmup_updates=0, learning_rate=1e-5)
+    plain.learn(total_timesteps=16)
+    assert [g["lr"] for g in plain.policy.optimizer.param_groups] == [1e-5]
