@@ -87,8 +87,9 @@ class Config(BaseModel):
     n_steps: int = Field(64, ge=2, description="rollout length per env per PPO update")
     batch_size: int = Field(256, ge=2, description="PPO minibatch size")
     n_epochs: int = Field(4, ge=1, description="PPO epochs per update")
-    learning_rate: float = Field(3e-4, gt=0, description="the actor's Adam step size")
-    critic_lr_scale: float = Field(1.0, gt=0, description="the critic's learning rate = learning_rate * this")
+    learning_rate: float = Field(3e-5, gt=0, description="the actor's Adam step size (3e-4 collapsed the SFT policy "
+                                 "in ManiSkill within 3k steps: docs/rl.md)")
+    critic_lr_scale: float = Field(10.0, gt=0, description="the critic's learning rate = learning_rate * this")
     gamma: float = Field(0.99, gt=0, le=1)
     clip_range: float = Field(0.2, gt=0)
     ent_coef: float = Field(0.0, ge=0)

@@ -66,6 +66,6 @@ def test_the_critic_learning_rate_is_scaled_and_survives_sb3s_schedule():
     rates = {("critic" if id(g["params"][0]) in critic else "actor"): g["lr"] for g in model.policy.optimizer.param_groups}
     assert rates == {"actor": 1e-5, "critic": 1e-4}
     assert sum(len(g["params"]) for g in model.policy.optimizer.param_groups) == len(list(model.policy.parameters()))
-    plain = _model(value_warmup_updates=0, learning_rate=1e-5)
+    plain = _model(value_warmup_updates=0, learning_rate=1e-5, critic_lr_scale=1.0)
     plain.learn(total_timesteps=16)
     assert [g["lr"] for g in plain.policy.optimizer.param_groups] == [1e-5]
