@@ -3,6 +3,9 @@
 
     PYTHONPATH=. .venv/bin/python scripts/evaluate_sft.py <collect> <tokenize> <sft> [--episodes 25] [--jobs 2]
 
+``--rl <rl artifact>`` evaluates that artifact's PPO policy (``policy.zip``) instead, on the same
+initial states; ``scripts/paired_success.py`` then pairs it with the SFT episodes.
+
 Prints success per (task, split) and pooled, with Wilson 95% intervals, and writes the per-episode
 results next to nothing else (``--out results.jsonl`` to keep them).
 """
@@ -25,6 +28,7 @@ def main() -> None:
     ap.add_argument("--splits", default="ind,ood")
     ap.add_argument("--max-steps", type=int, default=75)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--rl", type=Path, default=None, help="evaluate this rl artifact's PPO policy instead of SFT")
     args = ap.parse_args()
 
     from stages.evaluate import Config
@@ -34,9 +38,9 @@ def main() -> None:
     from stages.sft import read_policy_json
 
     info = read_policy_json(args.sft)
-    dirs = {"collect": args.collect, "tokenize": args.tokenize, "sft": args.sft, "rl": Path("/nonexistent")}
+    dirs = {"collect": args.collect, "tokenize": args.tokenize, "sft": args.sft, "rl": args.rl or Path("/nonexistent")}
     ctx = SimpleNamespace(input=lambda name: dirs[name], device="cpu")
-    cfg = Config(episodes=args.episodes, policies=["sft"], splits=args.splits.split(","), videos=False,
+    cfg = Config(episodes=args.episodes, policies=["ppo" if args.rl else "sft"], splits=args.splits.split(","), videos=False,
                  max_steps=args.max_steps, snapshot_episodes=0)
     jobs = build_jobs(ctx, cfg, {"tasks": info["tasks"], "frame_skip": info["frame_skip"]})
     t0 = time.perf_counter()

@@ -6,6 +6,8 @@ evaluate artifact with the same ``evaluate.seed`` and ``episodes`` (hence the sa
 
     .venv/bin/python scripts/paired_success.py --sft <evaluate dir> <evaluate dir> [<evaluate dir> ...]
 
+Any of them may instead be a results file written by ``scripts/evaluate_sft.py --out``.
+
 Prints, per evaluate artifact and pooled, the success difference per split (tasks pooled) and per
 task and split: mean [95% interval] (n, states only PPO solved / only SFT solved).
 """
@@ -22,7 +24,8 @@ from stages.sweep_report.paired import by_split, fmt_difference, pair_up  # noqa
 
 
 def results(ev: Path, policy: str) -> list[dict]:
-    path = Path(ev) / "results.jsonl"
+    """``policy``'s episodes of an evaluate artifact, or of a results file (``scripts/evaluate_sft.py --out``)."""
+    path = Path(ev) if Path(ev).is_file() else Path(ev) / "results.jsonl"
     if not path.is_file():
         raise SystemExit(f"{path} is missing: is {ev} a committed evaluate artifact?")
     return [r for r in map(json.loads, path.read_text().splitlines()) if r["policy"] == policy]

@@ -222,10 +222,26 @@ def load_policy(path: str | Path, device: str = "cpu"):
     if not path.is_file():
         raise FileNotFoundError(f"no policy at {path}")
     if path.suffix == ".zip":
-        from stable_baselines3 import PPO
-
-        return PPO.load(str(path), device=device).policy
+        return _policy_from_zip(path, device)
     return TaskPolicy.load(str(path), device=device)
+
+
+def _policy_from_zip(path: Path, device: str):
+    """The policy of an SB3 model zip, its weights only.
+
+    Not ``PPO.load``: that also restores the optimizer into a freshly built one-group Adam, which
+    fails for the rl stage's two parameter groups (actor and critic rates, ``critic_lr_scale``), and
+    evaluation needs no optimizer.
+    """
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    data, params, _ = load_from_zip_file(str(path), device=device)
+    if data is None or "policy" not in params:
+        raise ValueError(f"{path} is not an SB3 model zip with a policy")
+    policy = data["policy_class"](data["observation_space"], data["action_space"], lambda _: 0.0,
+                                  **data.get("policy_kwargs", {}))
+    policy.load_state_dict(params["policy"])
+    return policy.to(device).eval()
 
 
 def flat_params(policy) -> torch.Tensor:

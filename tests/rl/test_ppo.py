@@ -69,3 +69,19 @@ def test_the_critic_learning_rate_is_scaled_and_survives_sb3s_schedule():
     plain = _model(value_warmup_updates=0, learning_rate=1e-5, critic_lr_scale=1.0)
     plain.learn(total_timesteps=16)
     assert [g["lr"] for g in plain.policy.optimizer.param_groups] == [1e-5]
+
+
+def test_a_ppo_zip_with_two_learning_rates_loads_for_evaluation(tmp_path):
+    from stages.sft.policy import flat_params, load_policy
+
+    torch.manual_seed(0)
+    model = _model(value_warmup_updates=0, critic_lr_scale=10.0)
+    model.learn(total_timesteps=16)
+    model.save(tmp_path / "policy.zip")
+    loaded = load_policy(tmp_path / "policy.zip")
+    assert torch.equal(flat_params(loaded), flat_params(model.policy))
+    assert not loaded.training
+    obs = model.env.reset()
+    a0, _ = model.policy.predict(obs, deterministic=True)
+    a1, _ = loaded.predict(obs, deterministic=True)
+    assert np.allclose(a0, a1)
