@@ -23,8 +23,9 @@ class Progress:
     ``lines``: stderr is not a terminal (a log file, ``nohup``, a batch job): one plain line at most
     every ``interval`` seconds, ``desc done/total (pct), rate, ETA, postfix``, and a last one at
     close if any was printed. A heartbeat thread prints the line (with how long ago the last item
-    finished) whenever an interval passes without one, so slow items never leave the log silent. ``off``: ``enabled=False`` or ``PIPELINE_PROGRESS=0``. Every mode
-    counts, so a stage can log its rate at the end.
+    finished) whenever an interval passes without one, so slow items never leave the log silent.
+    ``off``: ``enabled=False`` or ``PIPELINE_PROGRESS=0``. Every mode counts, so a stage can log its
+    rate at the end.
 
     :param total: items expected, or None when unknown (no percentage, no ETA)
     :param desc: what is counted, e.g. ``"train_wm: action steps"``
