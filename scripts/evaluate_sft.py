@@ -7,13 +7,16 @@
 initial states; ``scripts/paired_success.py`` then pairs it with the SFT episodes.
 
 Prints success per (task, split) and pooled, with Wilson 95% intervals, and writes the per-episode
-results next to nothing else (``--out results.jsonl`` to keep them).
+results next to nothing else (``--out results.jsonl`` to keep them). ``--strips DIR`` also saves,
+for the first episode of each (task, split), a strip of 8 third-view frames from start to end
+(``DIR/<split>_<task>_<success|fail>.png``): look at what the policy does before believing a rate.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import multiprocessing as mp
+import tempfile
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -28,7 +31,9 @@ def main() -> None:
     ap.add_argument("--splits", default="ind,ood")
     ap.add_argument("--max-steps", type=int, default=75)
     ap.add_argument("--out", type=Path, default=None)
-    ap.add_argument("--rl", type=Path, default=None, help="evaluate this rl artifact's PPO policy instead of SFT")
+    ap.add_argument("--rl", type=Path, default=None, help="evaluate this rl artifact's PPO policy instead of SFT "
+                    "(a directory), or one of its snapshots (a .zip under snapshots/)")
+    ap.add_argument("--strips", type=Path, default=None, help="save a frame strip of one episode per (task, split) here")
     args = ap.parse_args()
 
     from stages.evaluate import Config
@@ -38,15 +43,28 @@ def main() -> None:
     from stages.sft import read_policy_json
 
     info = read_policy_json(args.sft)
-    dirs = {"collect": args.collect, "tokenize": args.tokenize, "sft": args.sft, "rl": args.rl or Path("/nonexistent")}
+    rl_dir = args.rl or Path("/nonexistent")
+    if args.rl is not None and args.rl.suffix == ".zip":  # a snapshot: the jobs read <dir>/policy.zip
+        rl_dir = Path(tempfile.mkdtemp(prefix="evaluate_snapshot_"))
+        (rl_dir / "policy.zip").symlink_to(args.rl.resolve())
+    dirs = {"collect": args.collect, "tokenize": args.tokenize, "sft": args.sft, "rl": rl_dir}
     ctx = SimpleNamespace(input=lambda name: dirs[name], device="cpu")
     cfg = Config(episodes=args.episodes, policies=["ppo" if args.rl else "sft"], splits=args.splits.split(","), videos=False,
                  max_steps=args.max_steps, snapshot_episodes=0)
     jobs = build_jobs(ctx, cfg, {"tasks": info["tasks"], "frame_skip": info["frame_skip"]})
+    if args.strips is not None:
+        first = {}
+        for job in jobs:
+            first.setdefault((job.task, job.split), job)
+        for job in first.values():
+            job.record = [job.seeds[0]]
     t0 = time.perf_counter()
     with mp.get_context("spawn").Pool(args.jobs) as pool:
         results = [r for rs in pool.imap_unordered(run_job, jobs) for r in rs]
     seconds = time.perf_counter() - t0
+    if args.strips is not None:
+        _save_strips(results, args.strips)
+    results = [{k: v for k, v in r.items() if k != "frames"} for r in results]
     if args.out is not None:
         args.out.write_text("".join(json.dumps(r) + "\n" for r in results))
     print(f"{len(results)} episodes in {seconds:.0f} s ({args.jobs} workers)")
@@ -56,6 +74,22 @@ def main() -> None:
             rs = [r for r in results if r["split"] == split and (task == "all" or r["task"] == task)]
             cells.append(f"{task} {fmt_rate(sum(r['success'] for r in rs), len(rs))}")
         print(f"{split}: " + " | ".join(cells))
+
+
+def _save_strips(results: list[dict], out: Path) -> None:
+    import numpy as np
+    from PIL import Image
+
+    out.mkdir(parents=True, exist_ok=True)
+    for r in results:
+        if "frames" not in r:
+            continue
+        frames = r["frames"]  # (control steps+1, H, W, 3) uint8
+        picks = np.linspace(0, len(frames) - 1, 8).round().astype(int)
+        strip = np.concatenate([frames[i] for i in picks], axis=1)  # (H, 8W, 3)
+        name = f"{r['split']}_{r['task']}_{'success' if r['success'] else 'fail'}.png"
+        Image.fromarray(strip).resize((strip.shape[1] * 2, strip.shape[0] * 2), Image.NEAREST).save(out / name)
+    print(f"frame strips in {out}")
 
 
 if __name__ == "__main__":

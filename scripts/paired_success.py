@@ -6,7 +6,9 @@ evaluate artifact with the same ``evaluate.seed`` and ``episodes`` (hence the sa
 
     .venv/bin/python scripts/paired_success.py --sft <evaluate dir> <evaluate dir> [<evaluate dir> ...]
 
-Any of them may instead be a results file written by ``scripts/evaluate_sft.py --out``.
+Any of them may instead be a results file written by ``scripts/evaluate_sft.py --out``. Several
+seeds, each PPO policy paired with its own SFT policy: give ``--sft`` one baseline per compared
+artifact, in the same order (``--sft s0 s1 s2 -- p0 p1 p2``); the pooled lines pool those pairs.
 
 Prints, per evaluate artifact and pooled, the success difference per split (tasks pooled) and per
 task and split: mean [95% interval] (n, states only PPO solved / only SFT solved).
@@ -33,18 +35,22 @@ def results(ev: Path, policy: str) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sft", type=Path, required=True, help="evaluate artifact whose 'sft' episodes are the baseline")
+    ap.add_argument("--sft", type=Path, nargs="+", required=True,
+                    help="evaluate artifact(s) whose 'sft' episodes are the baseline: one for all, or one per compared artifact")
     ap.add_argument("evaluate", type=Path, nargs="+", help="evaluate artifacts whose 'ppo' episodes are compared")
     ap.add_argument("--policy", default="ppo", help="policy name in results.jsonl to compare (default ppo)")
     args = ap.parse_args()
-    sft = results(args.sft, "sft")
-    if not sft:
-        raise SystemExit(f"{args.sft} has no 'sft' episodes")
+    if len(args.sft) not in (1, len(args.evaluate)):
+        raise SystemExit(f"--sft: {len(args.sft)} baselines for {len(args.evaluate)} compared artifacts; give one, or one each")
+    baselines = args.sft * len(args.evaluate) if len(args.sft) == 1 else args.sft
     pooled = []
-    for ev in args.evaluate:
+    for ev, base in zip(args.evaluate, baselines):
+        sft = results(base, "sft")
+        if not sft:
+            raise SystemExit(f"{base} has no 'sft' episodes")
         pairs = pair_up(results(ev, args.policy), sft)
         if not pairs:
-            print(f"{ev}: no episode shares an initial state with {args.sft} (another evaluate seed or episode count?)")
+            print(f"{ev}: no episode shares an initial state with {base} (another evaluate seed or episode count?)")
             continue
         pooled += pairs
         print(f"{ev.name[:12]}: {len(pairs)} paired episodes")

@@ -101,6 +101,13 @@ class Config(BaseModel):
                                       "policy stays SFT's while the value function learns its returns)")
     kl_coef: float = Field(0.0, ge=0, description="after each update, a pass minimising kl_coef * KL(SFT || policy) "
                            "over the rollout (0 = off)")
+    self_imitation_batches: int = Field(8, ge=0, description="after each PPO update, minibatches of self-imitation on "
+                                        "the policy's own successful episodes (stages.rl.self_imitation; 0 = off; "
+                                        "8 lifted PPO in ManiSkill above SFT in domain: docs/RESULTS.md)")
+    self_imitation_weight: Literal["advantage", "success"] = Field(
+        "advantage", description="advantage: -log pi * max(R - V, 0) plus the critic's term (SIL); success: every step "
+        "of a successful episode weighs 1 (behaviour cloning on the policy's own successes)")
+    self_imitation_capacity: int = Field(10000, ge=1, description="steps of successful episodes kept for self-imitation")
     snapshots: int = Field(4, ge=0, description="policy checkpoints spread over training (success vs time)")
     precision_envs: int = Field(16, ge=0, description="environments per split (IND, OOD) whose imagined episodes of "
                                 "the final policy are replayed in ManiSkill (imagined-success precision; 0 = skip)")

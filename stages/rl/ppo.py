@@ -9,7 +9,9 @@ On top of SB3's PPO, three guards, each set in the rl config (docs/rl.md):
   - ``kl_coef``: after each update, a pass over the rollout minimising
     ``kl_coef * KL(pi_sft(.|s) || pi(.|s))``, a pull back towards the SFT policy;
   - ``critic_lr_scale``: the critic's learning rate is the actor's times this (one Adam, two
-    parameter groups), so a small actor step size does not leave the value function unfitted.
+    parameter groups), so a small actor step size does not leave the value function unfitted;
+  - ``self_imitation_batches``: after each update, that many steps of self-imitation on the
+    policy's own successful episodes (``stages.rl.self_imitation``).
 Reward normalisation (``normalize_reward``) is the environment's: SB3's ``VecNormalize``.
 """
 from __future__ import annotations
@@ -20,6 +22,7 @@ import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.logger import Logger
 
+from stages.rl.self_imitation import SelfImitation
 from stages.sft.policy import LatentExtractor, TaskPolicy
 
 CRITIC_MODULES = ("vf_features_extractor", "mlp_extractor.value_net", "value_net")
@@ -50,6 +53,7 @@ class SFTPPO(PPO):
         self.reference: TaskPolicy | None = None
         self.kl_history: list[float] = []
         self.curves = None  # stages.common.curves.Curves: update statistics per PPO update when set
+        self.self_imitation = None  # stages.rl.self_imitation.SelfImitation, filled by its recorder callback
 
     def keep_reference(self) -> None:
         """Freeze a copy of the current policy (call after loading the SFT weights)."""
@@ -66,7 +70,7 @@ class SFTPPO(PPO):
                 group["lr"] = lr * group.get("lr_scale", 1.0)
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "reference", "curves"]  # policy.zip: the fine-tuned policy
+        return [*super()._excluded_save_params(), "reference", "curves", "self_imitation"]  # policy.zip: the fine-tuned policy
 
     def train(self) -> None:
         warm = self.updates_done < self.value_warmup_updates
@@ -83,11 +87,16 @@ class SFTPPO(PPO):
                 p.requires_grad_(True)
         if not warm and self.kl_coef > 0 and self.reference is not None:
             self.kl_history.append(self._pull_towards_reference())
+        sil_stats = {}
+        if not warm and self.self_imitation is not None:
+            sil_stats = self.self_imitation.update(self.policy, self.max_grad_norm, self.vf_coef)
         if self.curves is not None:
             for name in ("approx_kl", "clip_fraction", "value_loss", "policy_gradient_loss", "explained_variance", "std"):
                 self.curves.scalar(f"ppo/{name}", self.logger.name_to_value.get(f"train/{name}"), self.num_timesteps)
             if self.kl_history and not warm:
                 self.curves.scalar("ppo/kl_to_sft", self.kl_history[-1], self.num_timesteps)
+            for name, value in sil_stats.items():
+                self.curves.scalar(f"self_imitation/{name}", value, self.num_timesteps)
         self.updates_done += 1
 
     def _pull_towards_reference(self) -> float:
@@ -121,6 +130,10 @@ def make_ppo(env, cfg, sft_policy: TaskPolicy, sft_info: dict, device: str) -> S
                    ent_coef=cfg.ent_coef, target_kl=cfg.target_kl, seed=cfg.seed, device=device, verbose=0,
                    policy_kwargs=kwargs, value_warmup_updates=cfg.value_warmup_updates, kl_coef=cfg.kl_coef,
                    critic_lr_scale=cfg.critic_lr_scale)
+    if cfg.self_imitation_batches:
+        model.self_imitation = SelfImitation(env.num_envs, cfg.gamma, cfg.self_imitation_capacity,
+                                             cfg.self_imitation_batches, batch_size, cfg.seed,
+                                             cfg.self_imitation_weight)
     model.policy.load_state_dict(sft_policy.state_dict())
     model.keep_reference()
     # a logger without outputs: SB3's default one creates an empty /tmp/SB3-<time> directory per learn()

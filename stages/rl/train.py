@@ -13,6 +13,7 @@ from stages.rl.guard import Guard, fit_done_ensemble
 from stages.rl.ppo import make_ppo, normalized_rewards
 from stages.rl.rewards import REGISTRY, GoalDistance, RewardParts, WMReward
 from stages.rl.rewards.fit import fit_embedding_head, fit_proxy, frame_set
+from stages.rl.self_imitation import SelfImitationRecorder
 from stages.rl.training import TrainingLog, plot_training
 from stages.rl.wm_env import WorldModelVecEnv
 from stages.sft.policy import flat_params
@@ -80,7 +81,8 @@ def train(ctx, cfg, inp) -> dict:
     with ctx.progress(cfg.total_timesteps, f"rl: PPO ({cfg.reward})", unit="step") as bar, Curves(ctx.out) as curves:
         log = TrainingLog(ctx.out, cfg.total_timesteps, cfg.snapshots, progress=bar, curves=curves)
         model.curves = curves
-        model.learn(total_timesteps=cfg.total_timesteps, callback=log)
+        callbacks = [log] if model.self_imitation is None else [log, SelfImitationRecorder(model.self_imitation)]
+        model.learn(total_timesteps=cfg.total_timesteps, callback=callbacks)
         model.curves = None
     seconds = time.perf_counter() - t0
     model.save(ctx.out / "policy.zip")
@@ -96,6 +98,8 @@ def train(ctx, cfg, inp) -> dict:
         "ppo/updates": int(model.updates_done),
         "ppo/kl_to_sft_last": model.kl_history[-1] if model.kl_history else None,
     })
+    if model.self_imitation is not None:
+        metrics.update({f"self_imitation/{k}": v for k, v in model.self_imitation.last_stats.items()})
     if isinstance(raw_env, WorldModelVecEnv):
         metrics["ppo/clipped_action_entries"] = int(raw_env.roll.clip_count)
     ctx.log.info("rl: %s", {k: v for k, v in metrics.items() if k.startswith("ppo/")})

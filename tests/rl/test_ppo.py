@@ -85,3 +85,67 @@ def test_a_ppo_zip_with_two_learning_rates_loads_for_evaluation(tmp_path):
     a0, _ = model.policy.predict(obs, deterministic=True)
     a1, _ = loaded.predict(obs, deterministic=True)
     assert np.allclose(a0, a1)
+
+
+def test_self_imitation_keeps_only_successful_episodes_with_their_discounted_returns():
+    from stages.rl.self_imitation import SelfImitation
+
+    sil = SelfImitation(n_envs=2, gamma=0.5, capacity=100, batches=1, batch_size=4, seed=0)
+    obs = {"x": np.arange(2, dtype=np.float32)[:, None]}  # (n_envs, 1)
+    actions = np.zeros((2, 3), np.float32)
+    # env 0 succeeds at its third step; env 1 is truncated at its third step (a failure)
+    for t, (done, success) in enumerate([(False, False), (False, False), (True, False)]):
+        sil.record(obs, actions, np.array([1.0, 1.0]), np.array([done, done]), np.array([done, False]))
+    assert sil.size == 3 and sil.episodes == 1
+    assert np.allclose(sil.returns[:3], [1.75, 1.5, 1.0])  # 1 + .5 + .25, 1 + .5, 1
+    assert np.all(sil.obs["x"][:3] == 0)  # only env 0's steps
+    assert all(p == [] for p in sil.pending)
+
+
+def test_self_imitation_raises_the_probability_of_a_successful_action():
+    from stages.rl.self_imitation import SelfImitation
+
+    torch.manual_seed(0)
+    model = _model(value_warmup_updates=0, self_imitation_batches=8)
+    assert isinstance(model.self_imitation, SelfImitation)
+    obs = model.env.reset()  # Dict observation, (2, ...) per key
+    action = np.full((2, 7), 0.3, np.float32)
+    obs_t = {k: torch.as_tensor(v) for k, v in obs.items()}
+
+    def log_prob():
+        with torch.no_grad():
+            return model.policy.evaluate_actions(obs_t, torch.as_tensor(action))[1].mean().item()
+
+    before = log_prob()
+    model.self_imitation.record(obs, action, np.array([50.0, 50.0]), np.array([True, True]), np.array([True, True]))
+    stats = model.self_imitation.update(model.policy, model.max_grad_norm, model.vf_coef)
+    assert stats["positive_fraction"] == 1.0 and stats["episodes"] == 2
+    assert log_prob() > before
+    off = _model(value_warmup_updates=0, self_imitation_batches=0)
+    assert off.self_imitation is None
+
+
+def test_ppo_with_self_imitation_records_steps_through_its_callback():
+    from stages.rl.self_imitation import SelfImitationRecorder
+
+    torch.manual_seed(0)
+    model = _model(value_warmup_updates=0, self_imitation_batches=2)
+    model.learn(total_timesteps=32, callback=SelfImitationRecorder(model.self_imitation))
+    # max_steps 6 and an untrained done head: every episode is truncated, a failure, so nothing is kept
+    assert model.self_imitation.size == 0 and sum(len(p) for p in model.self_imitation.pending) > 0
+
+
+def test_success_weighted_self_imitation_clones_successes_and_leaves_the_critic_alone():
+    torch.manual_seed(0)
+    model = _model(value_warmup_updates=0, self_imitation_batches=4, self_imitation_weight="success")
+    obs = model.env.reset()
+    action = np.full((2, 7), 0.3, np.float32)
+    obs_t = {k: torch.as_tensor(v) for k, v in obs.items()}
+    before = model.policy.evaluate_actions(obs_t, torch.as_tensor(action))[1].mean().item()
+    a0, v0 = _actor_critic(model)
+    # a return far below any value the critic predicts: the advantage weight would be 0, this one is not
+    model.self_imitation.record(obs, action, np.array([-50.0, -50.0]), np.array([True, True]), np.array([True, True]))
+    model.self_imitation.update(model.policy, model.max_grad_norm, model.vf_coef)
+    a1, v1 = _actor_critic(model)
+    assert torch.equal(v0, v1) and not torch.equal(a0, a1)
+    assert model.policy.evaluate_actions(obs_t, torch.as_tensor(action))[1].mean().item() > before
