@@ -3,7 +3,8 @@ vs inside ManiSkill, with the same observation (64x64 views -> tokenizer latent 
 
 World-model side: the action WM at the ``small`` profile's size (random weights: speed does not
 depend on them), ``num_envs`` batched envs, reward = the ``wm`` module (done head + LPIPS to a
-cached goal, so every step decodes its frame). Simulator side: the push task with the low-poly
+cached goal, so every step decodes its frame), and once more with the sparse term only (beta 0:
+the env decodes no frame). Simulator side: the push task with the low-poly
 Panda, ``sim_envs`` envs in a DummyVecEnv, reward = the task's rule reward; every frame goes
 through the same tokenizer. Both use the same PPO settings and policy. An env step is a policy step
 in both: one world-model frame = ``frame_skip`` control steps, which the simulator env runs by
@@ -115,6 +116,10 @@ def main() -> None:
     wm_env = WorldModelVecEnv(wm, tok, obs_fn, reward, [Start(0, instruction, tokens, first["proprio"])], num_envs=args.num_envs,
                               max_steps=50, theta_done=0.999, seed=0)
     wm_rate = timed_learn(wm_env, args.wm_steps, args.num_envs)
+    sparse = WMReward(GoalDistance(*goal), alpha=2.0, beta=0.0, theta_sps=0.5, num_envs=args.num_envs)
+    sparse_env = WorldModelVecEnv(wm, tok, obs_fn, sparse, [Start(0, instruction, tokens, first["proprio"])],
+                                  num_envs=args.num_envs, max_steps=50, theta_done=0.999, seed=0)
+    sparse_rate = timed_learn(sparse_env, args.wm_steps, args.num_envs)
 
     k = wm.spec.frame_skip
     sim_env = DummyVecEnv([lambda i=i: SimTaskEnv([SimSpec("push", scene.to_dict())], obs_fn, max_steps=50, seed=i,
@@ -127,8 +132,9 @@ def main() -> None:
     print(f"  world-model env: {args.num_envs} batched envs, small-profile action WM "
           f"(dim {wm.spec.dim}, depth {wm.spec.depth}, {wm.spec.tokens} tokens/frame, {wm.decode_steps} decoding passes), "
           f"wm reward with LPIPS: {wm_rate:.1f}")
+    print(f"  world-model env, sparse reward only (no frame decoded): {sparse_rate:.1f}")
     print(f"  ManiSkill env:   {args.sim_envs} envs (push, low-poly Panda, 64x64 x 2 views, tokenizer obs), rule reward: {sim_rate:.1f} ({sim_rate * k:.1f} control steps/s)")
-    print(f"  ratio world model / ManiSkill: {wm_rate / sim_rate:.2f}")
+    print(f"  ratio world model / ManiSkill: {wm_rate / sim_rate:.2f} (sparse only: {sparse_rate / sim_rate:.2f})")
 
 
 if __name__ == "__main__":

@@ -109,3 +109,18 @@ def test_actions_change_the_imagined_future(parts):
         oa, *_ = a.step(np.full((1, 7), 1.0, np.float32))
         ob, *_ = b.step(np.full((1, 7), -1.0, np.float32))
     assert not np.array_equal(oa["codes"], ob["codes"])
+
+
+def test_a_sparse_only_reward_decodes_no_frame_and_pays_the_same(parts, monkeypatch):
+    sparse, dense = _vec(parts, beta=0.0, theta_done=1e-6, max_steps=50), _vec(parts, beta=0.01, max_steps=50)
+    assert not sparse.reward.needs_frames and dense.reward.needs_frames
+    tok = parts[0]
+    calls = []
+    real = tok.decode
+    monkeypatch.setattr(tok, "decode", lambda tokens: calls.append(len(tokens)) or real(tokens))
+    sparse.reset()
+    _, r, dones, _ = sparse.step(np.zeros((3, 7), np.float32))
+    assert calls == [] and dones.all() and r.tolist() == [1.0, 1.0, 1.0]  # done head fired: alpha * 1
+    dense.reset()
+    dense.step(np.zeros((3, 7), np.float32))
+    assert calls  # the dense term needs the decoded frames

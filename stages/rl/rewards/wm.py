@@ -48,6 +48,7 @@ class WMReward(RewardModule):
             raise ValueError(f"dense must be 'similarity' or 'potential', got {dense!r}")
         self.distance, self.alpha, self.beta, self.theta = distance, alpha, beta, theta_sps
         self.dense_kind, self.gamma = dense, gamma
+        self.needs_frames = beta > 0  # sparse only (beta 0): the environment decodes no frame for it
         self.prev_phi = np.zeros(num_envs)
         # similarity and potential steps are both <= 1 (LPIPS distance lies in [0, 1])
         self.max_step_reward = alpha + beta
@@ -64,11 +65,13 @@ class WMReward(RewardModule):
         return 1.0 - self.distance(batch.third, batch.wrist, batch.goal_index)
 
     def reset(self, rows: np.ndarray, batch: StepBatch) -> None:
-        if self.dense_kind == "potential" and len(rows):
+        if self.dense_kind == "potential" and len(rows) and self.needs_frames:
             phi = -self.distance(batch.third, batch.wrist, batch.goal_index)
             self.prev_phi[rows] = phi[rows]
 
     def __call__(self, batch: StepBatch) -> np.ndarray:
+        if not self.needs_frames:
+            return self.alpha * self.sparse(batch)
         if self.dense_kind == "similarity":
             dense = self.similarity(batch)
         else:
@@ -84,4 +87,6 @@ class WMReward(RewardModule):
         return 1.0 - d[1:] if self.dense_kind == "similarity" else self.gamma * -d[1:] + d[:-1]
 
     def along(self, first: StepBatch, frames: StepBatch) -> np.ndarray:
+        if not self.needs_frames:
+            return self.alpha * self.sparse(frames)
         return self.alpha * self.sparse(frames) + self.beta * self.dense_along(first, frames)
