@@ -44,8 +44,10 @@ def main() -> None:
 
     info = read_policy_json(args.sft)
     rl_dir = args.rl or Path("/nonexistent")
+    snapshot = None
     if args.rl is not None and args.rl.suffix == ".zip":  # a snapshot: the jobs read <dir>/policy.zip
-        rl_dir = Path(tempfile.mkdtemp(prefix="evaluate_snapshot_"))
+        snapshot = tempfile.TemporaryDirectory(prefix="evaluate_snapshot_")
+        rl_dir = Path(snapshot.name)
         (rl_dir / "policy.zip").symlink_to(args.rl.resolve())
     dirs = {"collect": args.collect, "tokenize": args.tokenize, "sft": args.sft, "rl": rl_dir}
     ctx = SimpleNamespace(input=lambda name: dirs[name], device="cpu")
@@ -62,6 +64,8 @@ def main() -> None:
     with mp.get_context("spawn").Pool(args.jobs) as pool:
         results = [r for rs in pool.imap_unordered(run_job, jobs) for r in rs]
     seconds = time.perf_counter() - t0
+    if snapshot is not None:
+        snapshot.cleanup()
     if args.strips is not None:
         _save_strips(results, args.strips)
     results = [{k: v for k, v in r.items() if k != "frames"} for r in results]
