@@ -9,6 +9,7 @@ evaluate artifact with the same ``evaluate.seed`` and ``episodes`` (hence the sa
 Any of them may instead be a results file written by ``scripts/evaluate_sft.py --out``. Several
 seeds, each PPO policy paired with its own SFT policy: give ``--sft`` one baseline per compared
 artifact, in the same order (``--sft s0 s1 s2 -- p0 p1 p2``); the pooled lines pool those pairs.
+Two PPO policies against each other (e.g. ``wm`` minus ``rule``): ``--baseline-policy ppo``.
 
 Prints, per evaluate artifact and pooled, the success difference per split (tasks pooled) and per
 task and split: mean [95% interval] (n, states only PPO solved / only SFT solved).
@@ -39,15 +40,16 @@ def main() -> None:
                     help="evaluate artifact(s) whose 'sft' episodes are the baseline: one for all, or one per compared artifact")
     ap.add_argument("evaluate", type=Path, nargs="+", help="evaluate artifacts whose 'ppo' episodes are compared")
     ap.add_argument("--policy", default="ppo", help="policy name in results.jsonl to compare (default ppo)")
+    ap.add_argument("--baseline-policy", default="sft", help="policy name of the --sft files' episodes (default sft)")
     args = ap.parse_args()
     if len(args.sft) not in (1, len(args.evaluate)):
         raise SystemExit(f"--sft: {len(args.sft)} baselines for {len(args.evaluate)} compared artifacts; give one, or one each")
     baselines = args.sft * len(args.evaluate) if len(args.sft) == 1 else args.sft
     pooled = []
     for ev, base in zip(args.evaluate, baselines):
-        sft = results(base, "sft")
+        sft = results(base, args.baseline_policy)
         if not sft:
-            raise SystemExit(f"{base} has no 'sft' episodes")
+            raise SystemExit(f"{base} has no {args.baseline_policy!r} episodes")
         pairs = pair_up(results(ev, args.policy), sft)
         if not pairs:
             print(f"{ev}: no episode shares an initial state with {base} (another evaluate seed or episode count?)")

@@ -1,4 +1,4 @@
-"""What scripts/replay_imagined.py and scripts/wm_closed_loop.py both load: the tokenizer, the
+"""What scripts/replay_imagined.py and scripts/wm_closed_loop.py both load (and their shared options): the tokenizer, the
 observation function, the action world model, a policy, and a simulator over picked environments."""
 from __future__ import annotations
 
@@ -18,8 +18,12 @@ class PolicyCheck:
 
 
 def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_path: Path, *, split: str,
-               envs: int, steps: int, keep_frames: bool = False) -> PolicyCheck:
-    """``envs`` environments of ``split`` (round-robin over the SFT policy's tasks), on CPU."""
+               envs: int, steps: int, keep_frames: bool = False, decode_steps: int | None = None,
+               temperature: float | None = None) -> PolicyCheck:
+    """``envs`` environments of ``split`` (round-robin over the SFT policy's tasks), on CPU.
+
+    decode_steps, temperature: the world model's rollout decoding (None: the train_wm artifact's own).
+    """
     from stages.collect.catalog import read_scenes_json
     from stages.collect.dataset import read_sim_facts
     from stages.goals.environments import list_environments
@@ -33,7 +37,7 @@ def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_
 
     tok = load_tokenizer(tokenize, "cpu")
     obs_fn = ObservationFn(tok, json.loads((sft / TEXT_EMBEDDINGS).read_text()))
-    wm = load_world_model(train_wm, "action", "cpu")
+    wm = load_world_model(train_wm, "action", "cpu", decode_steps=decode_steps, temperature=temperature)
     tasks = read_policy_json(sft)["tasks"]
     scenes, facts = read_scenes_json(collect / "scenes.json"), read_sim_facts(collect)
     picked = pick_environments([e for e in list_environments(collect) if e.split == split and e.task in tasks], envs)
@@ -41,3 +45,11 @@ def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_
     sim = SimTaskEnv(specs, obs_fn, max_steps=steps, action_repeat=int(wm.spec.frame_skip),
                      image_size=facts.image_size, robot_mesh=facts.robot_mesh, keep_frames=keep_frames)
     return PolicyCheck(tok, obs_fn, wm, load_policy(policy_path, "cpu"), specs, sim)
+
+
+def add_decoding_options(ap) -> None:
+    """--decode-steps / --temperature: override the world model's rollout decoding."""
+    ap.add_argument("--decode-steps", type=int, default=None,
+                    help="MaskGIT passes per imagined frame (default: the train_wm artifact's decode_steps)")
+    ap.add_argument("--temperature", type=float, default=None,
+                    help="token sampling temperature of imagined frames (default: the artifact's, 0 = greedy)")

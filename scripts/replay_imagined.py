@@ -5,10 +5,11 @@ metrics.json, rows in imagined.json); this script runs the same code (``stages.r
 the SFT policy or a PPO snapshot, with other environment counts or thresholds:
 
     PYTHONPATH=. .venv/bin/python scripts/replay_imagined.py <collect> <tokenize> <train_wm> <sft> <rl> \\
-        [--policy ppo|sft|snapshots/step_N.zip] [--envs 24] [--steps 75] [--split ind]
+        [--policy ppo|sft|snapshots/step_N.zip] [--envs 24] [--steps 75] [--split ind] [--thetas 0.7 0.9]
 
 Prints imagined done (done head >= theta at any step), simulator success of the replayed actions,
-precision with its Wilson 95% interval, and one line per environment.
+precision with its Wilson 95% interval, the same at each stricter threshold of ``--thetas`` (from the
+same rollouts), and one line per environment.
 """
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ import torch
 
 
 def main() -> None:
+    from policy_check import add_decoding_options, load_check
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     for name in ("collect", "tokenize", "train_wm", "sft", "rl"):
         ap.add_argument(name, type=Path)
@@ -27,18 +30,20 @@ def main() -> None:
     ap.add_argument("--split", choices=["ind", "ood"], default="ind")
     ap.add_argument("--steps", type=int, default=75, help="policy steps (rl.max_episode_steps)")
     ap.add_argument("--theta", type=float, default=0.5, help="done-head threshold (rl.theta_done)")
+    ap.add_argument("--thetas", type=float, nargs="*", default=[0.7, 0.9, 0.97],
+                    help="stricter thresholds to report precision at, from the same rollouts")
+    add_decoding_options(ap)
     ap.add_argument("--seed", type=int, default=2_000_000)
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-    from policy_check import load_check
 
-    from stages.rl.imagined import imagine_and_replay, precision_metrics
+    from stages.rl.imagined import imagine_and_replay, precision_at, precision_metrics
     from stages.sft.policy import POLICY_FILE
 
     path = {"ppo": args.rl / "policy.zip", "sft": args.sft / POLICY_FILE}.get(args.policy, args.rl / args.policy)
     c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, path, split=args.split, envs=args.envs,
-                   steps=args.steps)
+                   steps=args.steps, decode_steps=args.decode_steps, temperature=args.temperature)
     tok, obs_fn, wm, policy, specs, sim = c.tok, c.obs_fn, c.wm, c.policy, c.specs, c.sim
     try:
         rows = imagine_and_replay(policy, wm, tok, obs_fn, sim, specs, [args.seed + i for i in range(len(specs))],
@@ -47,11 +52,16 @@ def main() -> None:
         sim.close()
     m = precision_metrics(rows)
     print(f"policy {args.policy}: {m['environments']} {args.split.upper()} environments, horizon {args.steps} policy steps")
-    print(f"  imagined done {m['imagined_done']}, replayed success {m['replayed_success']}, both {m['imagined_and_replayed']}")
-    if m["precision"] is not None:
-        print(f"  precision {m['precision']:.2f} [{m['precision_lo']:.2f}, {m['precision_hi']:.2f}]")
+    print(f"  replayed actions succeed anywhere in the horizon: {sum(r.first_success > 0 for r in rows)}")
+    for theta in [args.theta] + [t for t in args.thetas if t > args.theta]:
+        m = precision_at(rows, theta)
+        line = f"  theta {theta:.2f}: imagined done {m['imagined_done']}, replayed success {m['replayed_success']}, both {m['imagined_and_replayed']}"
+        if m["precision"] is not None:
+            line += f", precision {m['precision']:.2f} [{m['precision_lo']:.2f}, {m['precision_hi']:.2f}]"
+        print(line)
     for r in rows:
-        print(f"    {r.env_id:55s} done_at {r.done_at:3d}  replay success {r.success}")
+        print(f"    {r.env_id:55s} done_at {r.done_at:3d}  peak p {max(r.done_probs):.3f}  replay success {r.success}"
+              f" (first at {r.first_success})")
 
 
 if __name__ == "__main__":

@@ -24,6 +24,8 @@ import torch
 
 
 def main() -> None:
+    from policy_check import add_decoding_options, load_check
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     for name in ("collect", "tokenize", "train_wm", "sft"):
         ap.add_argument(name, type=Path)
@@ -33,18 +35,18 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=40, help="policy steps in each environment")
     ap.add_argument("--every", type=int, default=5, help="strip: one frame every this many policy steps")
     ap.add_argument("--theta", type=float, default=0.5, help="done-head threshold (rl.theta_done)")
+    add_decoding_options(ap)
     ap.add_argument("--seed", type=int, default=3_000_000)
     ap.add_argument("--out", type=Path, default=Path("wm_closed_loop.png"))
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-    from policy_check import load_check
-
     from stages.goals.figure import goal_grid, to_uint8
     from stages.sft.policy import POLICY_FILE, act
 
     c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, args.policy or args.sft / POLICY_FILE,
-                   split=args.split, envs=args.envs, steps=args.steps, keep_frames=True)
+                   split=args.split, envs=args.envs, steps=args.steps, keep_frames=True,
+                   decode_steps=args.decode_steps, temperature=args.temperature)
     tok, obs_fn, wm, policy, specs, sim = c.tok, c.obs_fn, c.wm, c.policy, c.specs, c.sim
     shown = list(range(0, args.steps + 1, args.every))
     rows, summary = [], []

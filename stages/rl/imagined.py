@@ -7,6 +7,10 @@ read at every step), then replay exactly those actions open loop in the simulato
 initial state (each repeated ``frame_skip`` control steps, as in training) up to the step where
 the done head fired. Precision = replayed successes among the imagined ones: a world model the
 policy does not exploit says "done" where the simulator's success check fires too.
+
+Each row also keeps the done head's probability at every imagined step and the step at which the
+replayed actions first succeed over the whole horizon, so precision at any stricter threshold
+(``precision_at``) comes from the same rollouts.
 """
 from __future__ import annotations
 
@@ -17,12 +21,16 @@ import torch
 
 from stages.evaluate.stats import wilson
 
+STRICTER_THETAS = (0.7, 0.9, 0.97)  # done-head thresholds the rl stage also reports precision at
+
 
 @dataclass
 class Replay:
     env_id: str
     done_at: int  # policy step at which the done head first reached theta, -1 if never
     success: bool  # the replayed actions succeeded in the simulator (by done_at, or the horizon)
+    first_success: int = -1  # policy step of the replay's first simulator success over the horizon, -1 if never
+    done_probs: tuple = ()  # the done head's probability after each imagined policy step
 
 
 def pick_environments(envs: list, n: int) -> list:
@@ -62,33 +70,46 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     proprio = torch.as_tensor(np.stack(proprio0))  # (N, 10)
     obs = obs_fn.from_tokens(tokens, proprio.numpy(), instructions)
     actions = np.zeros((n, steps, 7), np.float32)
-    done_at = np.full(n, -1)
-    for t in range(steps):
+    probs = np.zeros((n, steps), np.float32)  # (N, T) done head after each step
+    for t in range(steps):  # the whole horizon, so stricter thresholds can be read off later
         a = torch.as_tensor(act(policy, obs, deterministic=True))
         a = torch.minimum(torch.maximum(a, wm.net.action_low), wm.net.action_high)  # what the WM sees (it clips)
         actions[:, t] = a.numpy()  # replayed as seen, so both environments get the same actions
         out = roll.step(a)
         if getattr(wm, "proprio_head", None) is not None:
             proprio = wm.next_proprio(proprio, a, out.tokens)
-        hit = (out.done_prob.cpu().numpy() >= theta) & (done_at < 0)
-        done_at[hit] = t + 1
-        if (done_at > 0).all():
-            break
+        probs[:, t] = out.done_prob.cpu().numpy()
         obs = obs_fn.from_tokens(out.tokens, proprio.numpy(), instructions)
 
     out_rows = []
     for i, (spec, seed) in enumerate(zip(specs, seeds)):
         sim.reset(seed=seed, options={"spec": spec})
-        success = False
-        for t in range(done_at[i] if done_at[i] > 0 else steps):
+        first_success = -1
+        for t in range(steps):
             _, _, _, trunc, info = sim.step(actions[i, t])
             if info["success"]:
-                success = True
+                first_success = t + 1
                 break
             if trunc:
                 break
-        out_rows.append(Replay(spec.key, int(done_at[i]), success))
+        out_rows.append(_row(spec.key, probs[i], first_success, theta))
     return out_rows
+
+
+def _first_at_least(probs: np.ndarray, theta: float) -> int:
+    hit = np.nonzero(probs >= theta)[0]
+    return int(hit[0]) + 1 if len(hit) else -1
+
+
+def _row(env_id: str, probs: np.ndarray, first_success: int, theta: float) -> Replay:
+    done_at = _first_at_least(probs, theta)
+    success = first_success > 0 and (done_at < 0 or first_success <= done_at)
+    return Replay(env_id, done_at, success, first_success, tuple(round(float(p), 4) for p in probs))
+
+
+def precision_at(rows: list[Replay], theta: float) -> dict:
+    """``precision_metrics`` had the done head's threshold been ``theta`` (from the recorded probabilities)."""
+    return precision_metrics([_row(r.env_id, np.asarray(r.done_probs), r.first_success, theta) for r in rows])
 
 
 def precision_metrics(rows: list[Replay]) -> dict:

@@ -113,7 +113,7 @@ def _imagined_precision(ctx, cfg, inp, policy) -> dict:
     """The final policy imagines episodes from fresh simulator starts; ManiSkill replays them."""
     from stages.collect.catalog import read_scenes_json
     from stages.collect.dataset import read_sim_facts
-    from stages.rl.imagined import imagine_and_replay, pick_environments, precision_metrics
+    from stages.rl.imagined import STRICTER_THETAS, imagine_and_replay, pick_environments, precision_at, precision_metrics
     from stages.rl.sim_env import SimSpec, SimTaskEnv
 
     scenes = read_scenes_json(ctx.input("collect") / "scenes.json")
@@ -137,6 +137,10 @@ def _imagined_precision(ctx, cfg, inp, policy) -> dict:
             sim.close()
         table[split] = [vars(r) for r in rows]
         out.update({f"imagined/{split}/{k}": v for k, v in precision_metrics(rows).items()})
+        for theta in (t for t in STRICTER_THETAS if t > cfg.theta_done):  # what a stricter done threshold would give
+            m = precision_at(rows, theta)
+            out[f"imagined/{split}/imagined_done_at_{theta:g}"] = m["imagined_done"]
+            out[f"imagined/{split}/precision_at_{theta:g}"] = m["precision"]
     (ctx.out / "imagined.json").write_text(json.dumps(table, indent=1) + "\n")
     ctx.log.info("rl: imagined-success precision %s", {k: v for k, v in out.items() if k.endswith(("precision", "done"))})
     return out

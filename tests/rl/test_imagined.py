@@ -1,0 +1,28 @@
+"""Imagined-success precision read off at stricter done-head thresholds (stages.rl.imagined)."""
+import numpy as np
+import pytest
+
+from stages.rl.imagined import _row, precision_at, precision_metrics
+
+
+def test_a_replay_counts_only_if_it_succeeds_by_the_imagined_done():
+    probs = np.array([0.1, 0.6, 0.7, 0.8, 0.85, 0.95, 0.2])  # done head after each policy step
+    early = _row("push/a", probs, first_success=5, theta=0.5)
+    assert (early.done_at, early.success) == (2, False)  # imagined done at step 2, the simulator only at 5
+    late = _row("push/a", probs, first_success=5, theta=0.9)
+    assert (late.done_at, late.success) == (6, True)
+    never = _row("push/a", probs, first_success=3, theta=0.99)
+    assert (never.done_at, never.success) == (-1, True)  # no imagined done: success by the horizon
+
+
+def test_precision_at_a_stricter_threshold_drops_the_false_alarms():
+    rows = [_row("pull/a", np.array([0.2, 0.6, 0.55]), -1, 0.5),  # false alarm at 0.6
+            _row("push/b", np.array([0.3, 0.8, 0.98]), 3, 0.5),  # imagined at 2, real at 3: false at 0.5
+            _row("push/c", np.array([0.99, 0.99, 0.99]), 1, 0.5)]  # true
+    base = precision_metrics(rows)
+    assert (base["imagined_done"], base["imagined_and_replayed"]) == (3, 1)
+    assert base["precision"] == pytest.approx(1 / 3)
+    strict = precision_at(rows, 0.97)
+    assert (strict["imagined_done"], strict["imagined_and_replayed"]) == (2, 2)
+    assert strict["precision"] == pytest.approx(1.0)
+    assert precision_at(rows, 0.5) == base  # the stage's own threshold gives back its rows
