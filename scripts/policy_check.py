@@ -1,5 +1,6 @@
-"""What scripts/replay_imagined.py and scripts/wm_closed_loop.py both load (and their shared options): the tokenizer, the
-observation function, the action world model, a policy, and a simulator over picked environments."""
+"""What scripts/replay_imagined.py and scripts/wm_closed_loop.py both load: the tokenizer, the
+observation function, the action world model, a policy, and a simulator over picked environments;
+and their shared decoding options."""
 from __future__ import annotations
 
 import json

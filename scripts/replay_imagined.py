@@ -37,8 +37,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-
-    from stages.rl.imagined import imagine_and_replay, precision_at, precision_metrics
+    from stages.rl.imagined import imagine_and_replay, precision_at
     from stages.sft.policy import POLICY_FILE
 
     path = {"ppo": args.rl / "policy.zip", "sft": args.sft / POLICY_FILE}.get(args.policy, args.rl / args.policy)
@@ -50,8 +49,7 @@ def main() -> None:
                                   args.steps, args.theta)
     finally:
         sim.close()
-    m = precision_metrics(rows)
-    print(f"policy {args.policy}: {m['environments']} {args.split.upper()} environments, horizon {args.steps} policy steps")
+    print(f"policy {args.policy}: {len(rows)} {args.split.upper()} environments, horizon {args.steps} policy steps")
     print(f"  replayed actions succeed anywhere in the horizon: {sum(r.first_success > 0 for r in rows)}")
     for theta in [args.theta] + [t for t in args.thetas if t > args.theta]:
         m = precision_at(rows, theta)
