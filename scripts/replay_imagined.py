@@ -32,23 +32,30 @@ def main() -> None:
     ap.add_argument("--theta", type=float, default=0.5, help="done-head threshold (rl.theta_done)")
     ap.add_argument("--thetas", type=float, nargs="*", default=[0.7, 0.9, 0.97],
                     help="stricter thresholds to report precision at, from the same rollouts")
+    ap.add_argument("--strip", type=Path, default=None,
+                    help="write a frame strip: per environment with an imagined done, the imagined frames over the replayed ones")
+    ap.add_argument("--every", type=int, default=4, help="strip: one frame every this many policy steps")
+    ap.add_argument("--strip-rows", type=int, default=6, help="strip: environments shown (those with an imagined done first)")
     add_decoding_options(ap)
     ap.add_argument("--seed", type=int, default=2_000_000)
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-    from stages.rl.imagined import imagine_and_replay, precision_at
+    from stages.rl.imagined import TCP_ERROR_STEPS, imagine_and_replay, precision_at, tcp_error_at
     from stages.sft.policy import POLICY_FILE
 
     path = {"ppo": args.rl / "policy.zip", "sft": args.sft / POLICY_FILE}.get(args.policy, args.rl / args.policy)
     c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, path, split=args.split, envs=args.envs,
                    steps=args.steps, decode_steps=args.decode_steps, temperature=args.temperature)
     tok, obs_fn, wm, policy, specs, sim = c.tok, c.obs_fn, c.wm, c.policy, c.specs, c.sim
+    record = {} if args.strip else None
     try:
         rows = imagine_and_replay(policy, wm, tok, obs_fn, sim, specs, [args.seed + i for i in range(len(specs))],
-                                  args.steps, args.theta)
+                                  args.steps, args.theta, record=record)
     finally:
         sim.close()
+    if args.strip:
+        write_strip(rows, record, tok, args.strip, args.every, args.strip_rows)
     print(f"policy {args.policy}: {len(rows)} {args.split.upper()} environments, horizon {args.steps} policy steps")
     print(f"  replayed actions succeed anywhere in the horizon: {sum(r.first_success > 0 for r in rows)}")
     for theta in [args.theta] + [t for t in args.thetas if t > args.theta]:
@@ -57,9 +64,30 @@ def main() -> None:
         if m["precision"] is not None:
             line += f", precision {m['precision']:.2f} [{m['precision_lo']:.2f}, {m['precision_hi']:.2f}]"
         print(line)
+    errs = tcp_error_at(rows, TCP_ERROR_STEPS)
+    print("  imagined vs replayed TCP (same actions), mean over environments: "
+          + ", ".join(f"{100 * e:.1f} cm after {k}" if e is not None else f"- after {k}" for k, e in errs.items()))
     for r in rows:
         print(f"    {r.env_id:55s} done_at {r.done_at:3d}  peak p {max(r.done_probs):.3f}  replay success {r.success}"
               f" (first at {r.first_success})")
+
+
+def write_strip(rows, record: dict, tok, path: Path, every: int, max_envs: int) -> None:
+    """Imagined (decoded) over replayed third-view frames, up to a few steps past the imagined done."""
+    from stages.goals.figure import goal_grid, to_uint8
+
+    order = sorted(range(len(rows)), key=lambda i: rows[i].done_at < 0)[:max_envs]  # imagined dones first
+    last = max((rows[i].done_at if rows[i].done_at > 0 else 20) for i in order) + every
+    shown = list(range(0, min(last, record["tokens"].shape[1] - 1) + 1, every))
+    grid = []
+    for i in order:
+        r = rows[i]
+        third, _ = tok.decode(record["tokens"][i, shown])  # (S, 3, H, W) in [0, 1]
+        frames = record["frames"][i]
+        grid.append((f"{r.env_id.split('/')[0]} imagined (done@{r.done_at})", [to_uint8(f) for f in third]))
+        grid.append((f"replayed (success@{r.first_success})", [frames[t] if t < len(frames) else None for t in shown]))
+    goal_grid(grid, [f"t={t}" for t in shown], path, max_rows=len(grid))
+    print(f"strip: {path}")
 
 
 if __name__ == "__main__":

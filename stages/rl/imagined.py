@@ -10,7 +10,9 @@ policy does not exploit says "done" where the simulator's success check fires to
 
 Each row also keeps the done head's probability at every imagined step and the step at which the
 replayed actions first succeed over the whole horizon, so precision at any stricter threshold
-(``precision_at``) comes from the same rollouts.
+(``precision_at``) comes from the same rollouts. ``tcp_error`` is the world model's arm fidelity
+under the policy's own actions: after each replayed step, the distance between the TCP position the
+world model predicted (its proprioception head) and the simulator's, for the same action sequence.
 """
 from __future__ import annotations
 
@@ -19,9 +21,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from stages.common.proprio import POSITION_SCALE
 from stages.evaluate.stats import wilson
 
 STRICTER_THETAS = (0.7, 0.9, 0.97)  # done-head thresholds the rl stage also reports precision at
+TCP_ERROR_STEPS = (5, 10, 20)  # policy steps after which the rl stage reports the imagined TCP's error
 
 
 @dataclass
@@ -31,6 +35,7 @@ class Replay:
     success: bool  # the replayed actions succeeded in the simulator (by done_at, or the horizon)
     first_success: int = -1  # policy step of the replay's first simulator success over the horizon, -1 if never
     done_probs: tuple = ()  # the done head's probability after each imagined policy step
+    tcp_error: tuple = ()  # metres between imagined and replayed TCP after each step (until the replay ends)
 
 
 def pick_environments(envs: list, n: int) -> list:
@@ -47,10 +52,13 @@ def pick_environments(envs: list, n: int) -> list:
 
 @torch.no_grad()
 def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[int], steps: int,
-                       theta: float) -> list[Replay]:
+                       theta: float, record: dict | None = None) -> list[Replay]:
     """Imagine ``steps`` policy steps from each spec's simulator start, replay them in ``sim``.
 
     sim: a ``SimTaskEnv`` whose ``action_repeat`` is the world model's frame skip.
+    record: if given, filled with ``tokens`` (N, T+1, h, w), the imagined frames' tokens, and
+    ``frames``, per environment the replay's third-view frames (H, W, 3) uint8 at steps 0, 1, ...
+    (until it ended), for looking at the two side by side.
     """
     from stages.sft.policy import act
 
@@ -71,6 +79,7 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     obs = obs_fn.from_tokens(tokens, proprio.numpy(), instructions)
     actions = np.zeros((n, steps, 7), np.float32)
     probs = np.zeros((n, steps), np.float32)  # (N, T) done head after each step
+    tcp = np.zeros((n, steps, 3), np.float32)  # (N, T, 3) imagined TCP position after each step
     for t in range(steps):  # the whole horizon, so stricter thresholds can be read off later
         a = torch.as_tensor(act(policy, obs, deterministic=True))
         a = torch.minimum(torch.maximum(a, wm.net.action_low), wm.net.action_high)  # what the WM sees (it clips)
@@ -79,20 +88,33 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
         if getattr(wm, "proprio_head", None) is not None:
             proprio = wm.next_proprio(proprio, a, out.tokens)
         probs[:, t] = out.done_prob.cpu().numpy()
+        tcp[:, t] = proprio.numpy()[:, :3]
+        if record is not None:
+            record.setdefault("tokens", [tokens]).append(out.tokens.cpu().long())
         obs = obs_fn.from_tokens(out.tokens, proprio.numpy(), instructions)
 
+    if record is not None:
+        record["tokens"] = torch.stack(record["tokens"], 1)  # (N, T+1, h, w)
+        record["frames"] = []
+        sim.keep_frames = True
     out_rows = []
     for i, (spec, seed) in enumerate(zip(specs, seeds)):
         sim.reset(seed=seed, options={"spec": spec})
-        first_success = -1
+        if record is not None:
+            record["frames"].append([sim.frames[0][0]])
+        first_success, err = -1, []
         for t in range(steps):
-            _, _, _, trunc, info = sim.step(actions[i, t])
+            real, _, _, trunc, info = sim.step(actions[i, t])
+            if record is not None:
+                record["frames"][-1].append(sim.frames[-1][0])
+            err.append(float(np.linalg.norm(np.asarray(real["proprio"])[:3] - tcp[i, t])) / POSITION_SCALE)  # dm -> m
             if info["success"]:
                 first_success = t + 1
                 break
             if trunc:
                 break
-        out_rows.append(_row(spec.key, probs[i], first_success, theta))
+        out_rows.append(_row(spec.key, probs[i], first_success, theta, tuple(round(e, 4) for e in err)))
+    sim.keep_frames = False
     return out_rows
 
 
@@ -101,15 +123,26 @@ def _first_at_least(probs: np.ndarray, theta: float) -> int:
     return int(hit[0]) + 1 if len(hit) else -1
 
 
-def _row(env_id: str, probs: np.ndarray, first_success: int, theta: float) -> Replay:
+def _row(env_id: str, probs: np.ndarray, first_success: int, theta: float, tcp_error: tuple = ()) -> Replay:
     done_at = _first_at_least(probs, theta)
     success = first_success > 0 and (done_at < 0 or first_success <= done_at)
-    return Replay(env_id, done_at, success, first_success, tuple(round(float(p), 4) for p in probs))
+    return Replay(env_id, done_at, success, first_success, tuple(round(float(p), 4) for p in probs), tcp_error)
+
+
+def tcp_error_at(rows: list[Replay], steps: tuple[int, ...]) -> dict[int, float | None]:
+    """Mean imagined-vs-replayed TCP distance (metres) after each of ``steps`` policy steps, over the
+    rows whose replay lasted that long (None where none did)."""
+    out = {}
+    for k in steps:
+        errs = [r.tcp_error[k - 1] for r in rows if len(r.tcp_error) >= k]
+        out[k] = float(np.mean(errs)) if errs else None
+    return out
 
 
 def precision_at(rows: list[Replay], theta: float) -> dict:
     """``precision_metrics`` had the done head's threshold been ``theta`` (from the recorded probabilities)."""
-    return precision_metrics([_row(r.env_id, np.asarray(r.done_probs), r.first_success, theta) for r in rows])
+    return precision_metrics([_row(r.env_id, np.asarray(r.done_probs), r.first_success, theta, r.tcp_error)
+                              for r in rows])
 
 
 def precision_metrics(rows: list[Replay]) -> dict:

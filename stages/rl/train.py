@@ -113,7 +113,8 @@ def _imagined_precision(ctx, cfg, inp, policy) -> dict:
     """The final policy imagines episodes from fresh simulator starts; ManiSkill replays them."""
     from stages.collect.catalog import read_scenes_json
     from stages.collect.dataset import read_sim_facts
-    from stages.rl.imagined import STRICTER_THETAS, imagine_and_replay, pick_environments, precision_at, precision_metrics
+    from stages.rl.imagined import (STRICTER_THETAS, TCP_ERROR_STEPS, imagine_and_replay, pick_environments,
+                                    precision_at, precision_metrics, tcp_error_at)
     from stages.rl.sim_env import SimSpec, SimTaskEnv
 
     scenes = read_scenes_json(ctx.input("collect") / "scenes.json")
@@ -141,6 +142,8 @@ def _imagined_precision(ctx, cfg, inp, policy) -> dict:
             m = precision_at(rows, theta)
             out[f"imagined/{split}/imagined_done_at_{theta:g}"] = m["imagined_done"]
             out[f"imagined/{split}/precision_at_{theta:g}"] = m["precision"]
+        for k, err in tcp_error_at(rows, TCP_ERROR_STEPS).items():  # the arm's fidelity under the policy's actions
+            out[f"imagined/{split}/tcp_error_cm_at_{k}"] = None if err is None else 100 * err
     (ctx.out / "imagined.json").write_text(json.dumps(table, indent=1) + "\n")
     ctx.log.info("rl: imagined-success precision %s", {k: v for k, v in out.items() if k.endswith(("precision", "done"))})
     return out

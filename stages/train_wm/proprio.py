@@ -11,13 +11,12 @@ consecutive world-model steps of the training episodes with teacher-forced (real
 """
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import torch
 import torch.nn as nn
 
 from stages.common.proprio import PROPRIO_DIM, tcp_position_m
+from stages.train_wm.head_fit import fit_head
 
 ACTION_DIM = 7
 CHECKPOINT = "proprio_head.pt"
@@ -58,25 +57,13 @@ def train_proprio_head(head: ProprioHead, data, *, steps: int, batch_size: int, 
     p0, a, c1, p1 = (t.to(device) for t in data)
     delta = p1 - p0
     head.delta_scale.copy_(delta.std(0).clamp_min(1e-4))
-    opt = torch.optim.AdamW(head.parameters(), lr=lr, weight_decay=1e-4)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
-    gen = torch.Generator().manual_seed(seed)
-    hist, t0 = [], time.perf_counter()
-    head.train()
-    for step in range(steps):
+
+    def batch_loss(gen: torch.Generator) -> torch.Tensor:
         idx = torch.randint(0, len(p0), (min(batch_size, len(p0)),), generator=gen).to(device)
         pred = head(p0[idx], a[idx], c1[idx])
-        loss = (((pred - p1[idx]) / head.delta_scale) ** 2).mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        sched.step()
-        if step % max(1, steps // 50) == 0 or step == steps - 1:
-            hist.append(float(loss.detach()))
-        if progress is not None:
-            progress.update(1)
-    head.eval()
-    return {"history": hist, "final": hist[-1] if hist else None, "seconds": time.perf_counter() - t0}
+        return (((pred - p1[idx]) / head.delta_scale) ** 2).mean()
+
+    return fit_head(head, batch_loss, steps=steps, lr=lr, seed=seed, progress=progress)
 
 
 @torch.no_grad()

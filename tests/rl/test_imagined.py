@@ -26,3 +26,13 @@ def test_precision_at_a_stricter_threshold_drops_the_false_alarms():
     assert (strict["imagined_done"], strict["imagined_and_replayed"]) == (2, 2)
     assert strict["precision"] == pytest.approx(1.0)
     assert precision_at(rows, 0.5) == base  # the stage's own threshold gives back its rows
+
+
+def test_tcp_error_averages_only_over_replays_that_lasted():
+    from stages.rl.imagined import tcp_error_at
+
+    rows = [_row("a", np.zeros(3), -1, 0.5, (0.01, 0.02, 0.03)), _row("b", np.zeros(3), 1, 0.5, (0.05,))]
+    errs = tcp_error_at(rows, (1, 3, 4))
+    assert errs[1] == pytest.approx(0.03)  # both replays reached step 1
+    assert errs[3] == pytest.approx(0.03)  # only "a" reached step 3
+    assert errs[4] is None  # no replay lasted 4 steps
