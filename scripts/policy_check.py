@@ -48,6 +48,12 @@ def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_
     return PolicyCheck(tok, obs_fn, wm, load_policy(policy_path, "cpu"), specs, sim)
 
 
+def add_artifact_args(ap, names=("collect", "tokenize", "train_wm", "sft")) -> None:
+    """Positional artifact directories, in pipeline order."""
+    for name in names:
+        ap.add_argument(name, type=Path, help=f"a committed {name} artifact directory")
+
+
 def add_decoding_options(ap) -> None:
     """--decode-steps / --temperature: override the world model's rollout decoding."""
     ap.add_argument("--decode-steps", type=int, default=None,

@@ -20,11 +20,10 @@ import torch
 
 
 def main() -> None:
-    from policy_check import add_decoding_options, load_check
+    from policy_check import add_artifact_args, add_decoding_options, load_check
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    for name in ("collect", "tokenize", "train_wm", "sft", "rl"):
-        ap.add_argument(name, type=Path)
+    add_artifact_args(ap, ("collect", "tokenize", "train_wm", "sft", "rl"))
     ap.add_argument("--policy", default="ppo", help="ppo (rl's policy.zip), sft, or a path inside the rl artifact")
     ap.add_argument("--envs", type=int, default=24, help="environments of the split (spread over the tasks)")
     ap.add_argument("--split", choices=["ind", "ood"], default="ind")

@@ -21,11 +21,10 @@ import torch
 
 
 def main() -> None:
-    from policy_check import load_check
+    from policy_check import add_artifact_args, load_check
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    for name in ("collect", "tokenize", "train_wm", "sft"):
-        ap.add_argument(name, type=Path)
+    add_artifact_args(ap)
     ap.add_argument("--policy", type=Path, default=None, help="a policy file (default: the sft artifact's policy)")
     ap.add_argument("--envs", type=int, default=32)
     ap.add_argument("--steps", type=int, default=75)

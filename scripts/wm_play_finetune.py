@@ -1,0 +1,109 @@
+"""Does the world model stop imagining false successes once it has seen the policy fail?
+
+Every collected episode is planned, so the action world model has never watched what happens when a
+learned policy's gripper misses: inside it, the SFT policy's imagined successes are mostly not real
+(docs/RESULTS.md, "Where the imagination goes wrong"). This script lets the SFT policy play
+``--episodes`` episodes in ManiSkill (IND training environments, seeds apart from every check's),
+records them at the world model's step (tokens of the observed frame, proprioception, the executed
+action, the success flag: failures included), and fine-tunes the action world model for
+``--steps`` steps on its training episodes plus these (the play episodes listed ``--play-weight``
+times). It writes a copy of the train_wm artifact directory with the new ``action_wm.pt``, so
+``scripts/replay_imagined.py`` takes it as it is (run it on seeds the play never used: its default).
+
+    PYTHONPATH=. .venv/bin/python scripts/wm_play_finetune.py <collect> <tokenize> <train_wm> <sft> --out DIR \\
+        [--episodes 96] [--max-steps 50] [--steps 1000] [--lr 3e-4] [--play-weight 2]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def play(policy, sim, specs: list, seeds: list[int], max_steps: int, instruction_of) -> list:
+    """One recorded episode per (spec, seed): ``stages.train_wm.data.Episode`` at policy steps."""
+    from stages.sft.policy import act
+    from stages.tokenize.lfq import codes_to_tokens
+    from stages.train_wm.data import Episode
+
+    out = []
+    for i, (spec, seed) in enumerate(zip(specs, seeds)):
+        obs, _ = sim.reset(seed=seed, options={"spec": spec})
+        frames, proprio, actions, done = [obs["codes"]], [obs["proprio"]], [], [0.0]
+        for _ in range(max_steps):
+            a = act(policy, {k: v[None] for k, v in obs.items()})[0]
+            obs, _, term, trunc, info = sim.step(a)
+            frames.append(obs["codes"]), proprio.append(obs["proprio"]), actions.append(a)
+            done.append(float(info["success"]))
+            if term or trunc:
+                break
+        tokens = codes_to_tokens(torch.as_tensor(np.stack(frames))).reshape(len(frames), -1).numpy()  # (T+1, N)
+        out.append(Episode(f"play-{i}", instruction_of(spec), "ind", tokens.astype(np.int64),
+                           np.stack(actions).astype(np.float32), np.asarray(done, np.float32),
+                           np.stack(proprio).astype(np.float32), "play"))
+    return out
+
+
+def main() -> None:
+    from policy_check import add_artifact_args, load_check
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_artifact_args(ap)
+    ap.add_argument("--out", type=Path, required=True, help="directory: a copy of the train_wm artifact with the new model")
+    ap.add_argument("--episodes", type=int, default=96)
+    ap.add_argument("--max-steps", type=int, default=50)
+    ap.add_argument("--steps", type=int, default=1000, help="fine-tuning steps of the action world model")
+    ap.add_argument("--lr", type=float, default=3e-4)
+    ap.add_argument("--play-weight", type=int, default=2, help="how many times the play episodes are listed")
+    ap.add_argument("--seed", type=int, default=5_000_000, help="first play seed (the checks use 2_000_000+)")
+    args = ap.parse_args()
+
+    from stages.sft.policy import POLICY_FILE
+    from stages.train_wm.data import ClipSampler, load_episodes
+    from stages.train_wm.rollout import CHECKPOINTS, TEXT_EMBEDDINGS, save_world_model
+    from stages.train_wm.train import train_world_model
+
+    torch.set_num_threads(1)
+    c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, args.sft / POLICY_FILE, split="ind",
+                   envs=args.episodes, steps=args.max_steps)
+    t0 = time.perf_counter()
+    try:
+        eps = play(c.policy, c.sim, c.specs, [args.seed + i for i in range(len(c.specs))], args.max_steps,
+                   lambda spec: spec.instruction)
+    finally:
+        c.sim.close()
+    wins = sum(e.done[-1] > 0 for e in eps)
+    print(f"play: {len(eps)} episodes ({wins} successes, {sum(e.length for e in eps)} steps) in {time.perf_counter() - t0:.0f} s")
+
+    cfg = json.loads((args.train_wm / "manifest.json").read_text())["key_inputs"]["config"]
+    split = set(json.loads((args.train_wm / "split.json").read_text())["train"])
+    train = [e for e in load_episodes(args.collect, args.tokenize, frame_skip=int(c.wm.spec.frame_skip))
+             if e.episode_id in split]
+    text = {k: np.asarray(v, np.float32) for k, v in json.loads((args.train_wm / TEXT_EMBEDDINGS).read_text()).items()}
+    missing = sorted({e.instruction for e in eps} - set(text))
+    if missing:
+        raise ValueError(f"instructions without a text embedding in {args.train_wm}: {missing[:3]}")
+    sampler = ClipSampler(train + eps * args.play_weight, cfg["window"], text, cfg["seed"] + 99)
+    torch.set_num_threads(2)
+    net = c.wm.net
+    result = train_world_model(net, sampler, steps=args.steps, batch_size=cfg["batch_size"], lr=args.lr,
+                               weight_decay=cfg["weight_decay"], done_weight=cfg["done_weight"],
+                               done_kind=cfg["done_loss"], seed=cfg["seed"] + 7, device="cpu",
+                               changed_weight=cfg["changed_weight"], done_balance=cfg["done_balance"])
+    print(f"fine-tuned {args.steps} steps in {result['seconds']:.0f} s: ce {result['final']['ce']:.3f}, "
+          f"acc {result['final']['acc']:.3f}, done {result['final']['done']:.4f}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    for f in args.train_wm.iterdir():
+        if f.name != CHECKPOINTS["action"] and f.is_file() and not (args.out / f.name).exists():
+            (args.out / f.name).symlink_to(f.resolve())
+    save_world_model(net, args.out / CHECKPOINTS["action"],
+                     {"decode_steps": c.wm.decode_steps, "temperature": c.wm.temperature})
+    print(f"world model: {args.out / CHECKPOINTS['action']}")
+
+
+if __name__ == "__main__":
+    main()
