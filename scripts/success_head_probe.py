@@ -35,7 +35,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(2)
 
-    from stages.rl.imagined import _row, imagine_and_replay, precision_metrics
+    from stages.rl.imagined import imagine_and_replay, precision_metrics, replay_row
     from stages.sft.policy import POLICY_FILE
     from stages.tokenize.tokenizer import load_tokenizer
     from stages.train_wm.data import load_episodes
@@ -84,7 +84,7 @@ def main() -> None:
         for label, probs in (("done head", [np.asarray(r.done_probs) for r in rows]),
                              ("success head", list(frame_p)),
                              ("both", [np.minimum(np.asarray(r.done_probs), q) for r, q in zip(rows, frame_p)])):
-            m = precision_metrics([_row(r.env_id, pr, r.first_success, args.theta) for r, pr in zip(rows, probs)])
+            m = precision_metrics([replay_row(r.env_id, pr, r.first_success, args.theta) for r, pr in zip(rows, probs)])
             prec = "-" if m["precision"] is None else f"{m['precision']:.2f} [{m['precision_lo']:.2f}, {m['precision_hi']:.2f}]"
             print(f"  {sp} {label:12s}: imagined done {m['imagined_done']:2d} / {n}, confirmed "
                   f"{m['imagined_and_replayed']}, precision {prec}")

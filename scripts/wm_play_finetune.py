@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 
-def play(policy, sim, specs: list, seeds: list[int], max_steps: int, instruction_of) -> list:
+def play(policy, sim, specs: list, seeds: list[int], max_steps: int) -> list:
     """One recorded episode per (spec, seed): ``stages.train_wm.data.Episode`` at policy steps."""
     from stages.sft.policy import act
     from stages.tokenize.lfq import codes_to_tokens
@@ -42,7 +42,7 @@ def play(policy, sim, specs: list, seeds: list[int], max_steps: int, instruction
             if term or trunc:
                 break
         tokens = codes_to_tokens(torch.as_tensor(np.stack(frames))).reshape(len(frames), -1).numpy()  # (T+1, N)
-        out.append(Episode(f"play-{i}", instruction_of(spec), "ind", tokens.astype(np.int64),
+        out.append(Episode(f"play-{i}", spec.instruction, "ind", tokens.astype(np.int64),
                            np.stack(actions).astype(np.float32), np.asarray(done, np.float32),
                            np.stack(proprio).astype(np.float32), "play"))
     return out
@@ -72,8 +72,7 @@ def main() -> None:
                    envs=args.episodes, steps=args.max_steps)
     t0 = time.perf_counter()
     try:
-        eps = play(c.policy, c.sim, c.specs, [args.seed + i for i in range(len(c.specs))], args.max_steps,
-                   lambda spec: spec.instruction)
+        eps = play(c.policy, c.sim, c.specs, [args.seed + i for i in range(len(c.specs))], args.max_steps)
     finally:
         c.sim.close()
     wins = sum(e.done[-1] > 0 for e in eps)

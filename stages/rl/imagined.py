@@ -79,13 +79,14 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     obs = obs_fn.from_tokens(tokens, proprio.numpy(), instructions)
     actions = np.zeros((n, steps, 7), np.float32)
     probs = np.zeros((n, steps), np.float32)  # (N, T) done head after each step
+    has_head = getattr(wm, "proprio_head", None) is not None  # without one the arm is not predicted: no tcp_error
     tcp = np.zeros((n, steps, 3), np.float32)  # (N, T, 3) imagined TCP position after each step
     for t in range(steps):  # the whole horizon, so stricter thresholds can be read off later
         a = torch.as_tensor(act(policy, obs, deterministic=True))
         a = torch.minimum(torch.maximum(a, wm.net.action_low), wm.net.action_high)  # what the WM sees (it clips)
         actions[:, t] = a.numpy()  # replayed as seen, so both environments get the same actions
         out = roll.step(a)
-        if getattr(wm, "proprio_head", None) is not None:
+        if has_head:
             proprio = wm.next_proprio(proprio, a, out.tokens)
         probs[:, t] = out.done_prob.cpu().numpy()
         tcp[:, t] = proprio.numpy()[:, :3]
@@ -107,13 +108,14 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
             real, _, _, trunc, info = sim.step(actions[i, t])
             if record is not None:
                 record["frames"][-1].append(sim.frames[-1][0])
-            err.append(float(np.linalg.norm(np.asarray(real["proprio"])[:3] - tcp[i, t])) / POSITION_SCALE)  # dm -> m
+            if has_head:
+                err.append(float(np.linalg.norm(np.asarray(real["proprio"])[:3] - tcp[i, t])) / POSITION_SCALE)  # dm -> m
             if info["success"]:
                 first_success = t + 1
                 break
             if trunc:
                 break
-        out_rows.append(_row(spec.key, probs[i], first_success, theta, tuple(round(e, 4) for e in err)))
+        out_rows.append(replay_row(spec.key, probs[i], first_success, theta, tuple(round(e, 4) for e in err)))
     sim.keep_frames = False
     return out_rows
 
@@ -123,7 +125,9 @@ def _first_at_least(probs: np.ndarray, theta: float) -> int:
     return int(hit[0]) + 1 if len(hit) else -1
 
 
-def _row(env_id: str, probs: np.ndarray, first_success: int, theta: float, tcp_error: tuple = ()) -> Replay:
+def replay_row(env_id: str, probs: np.ndarray, first_success: int, theta: float, tcp_error: tuple = ()) -> Replay:
+    """One environment's row from a success probability after each imagined step (the done head's, or
+    any other read on the same imagined frames) and the replay's first simulator success."""
     done_at = _first_at_least(probs, theta)
     success = first_success > 0 and (done_at < 0 or first_success <= done_at)
     return Replay(env_id, done_at, success, first_success, tuple(round(float(p), 4) for p in probs), tcp_error)
@@ -141,7 +145,7 @@ def tcp_error_at(rows: list[Replay], steps: tuple[int, ...]) -> dict[int, float 
 
 def precision_at(rows: list[Replay], theta: float) -> dict:
     """``precision_metrics`` had the done head's threshold been ``theta`` (from the recorded probabilities)."""
-    return precision_metrics([_row(r.env_id, np.asarray(r.done_probs), r.first_success, theta, r.tcp_error)
+    return precision_metrics([replay_row(r.env_id, np.asarray(r.done_probs), r.first_success, theta, r.tcp_error)
                               for r in rows])
 
 

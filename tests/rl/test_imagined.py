@@ -2,23 +2,23 @@
 import numpy as np
 import pytest
 
-from stages.rl.imagined import _row, precision_at, precision_metrics
+from stages.rl.imagined import precision_at, precision_metrics, replay_row
 
 
 def test_a_replay_counts_only_if_it_succeeds_by_the_imagined_done():
     probs = np.array([0.1, 0.6, 0.7, 0.8, 0.85, 0.95, 0.2])  # done head after each policy step
-    early = _row("push/a", probs, first_success=5, theta=0.5)
+    early = replay_row("push/a", probs, first_success=5, theta=0.5)
     assert (early.done_at, early.success) == (2, False)  # imagined done at step 2, the simulator only at 5
-    late = _row("push/a", probs, first_success=5, theta=0.9)
+    late = replay_row("push/a", probs, first_success=5, theta=0.9)
     assert (late.done_at, late.success) == (6, True)
-    never = _row("push/a", probs, first_success=3, theta=0.99)
+    never = replay_row("push/a", probs, first_success=3, theta=0.99)
     assert (never.done_at, never.success) == (-1, True)  # no imagined done: success by the horizon
 
 
 def test_precision_at_a_stricter_threshold_drops_the_false_alarms():
-    rows = [_row("pull/a", np.array([0.2, 0.6, 0.55]), -1, 0.5),  # false alarm at 0.6
-            _row("push/b", np.array([0.3, 0.8, 0.98]), 3, 0.5),  # imagined at 2, real at 3: false at 0.5
-            _row("push/c", np.array([0.99, 0.99, 0.99]), 1, 0.5)]  # true
+    rows = [replay_row("pull/a", np.array([0.2, 0.6, 0.55]), -1, 0.5),  # false alarm at 0.6
+            replay_row("push/b", np.array([0.3, 0.8, 0.98]), 3, 0.5),  # imagined at 2, real at 3: false at 0.5
+            replay_row("push/c", np.array([0.99, 0.99, 0.99]), 1, 0.5)]  # true
     base = precision_metrics(rows)
     assert (base["imagined_done"], base["imagined_and_replayed"]) == (3, 1)
     assert base["precision"] == pytest.approx(1 / 3)
@@ -31,7 +31,7 @@ def test_precision_at_a_stricter_threshold_drops_the_false_alarms():
 def test_tcp_error_averages_only_over_replays_that_lasted():
     from stages.rl.imagined import tcp_error_at
 
-    rows = [_row("a", np.zeros(3), -1, 0.5, (0.01, 0.02, 0.03)), _row("b", np.zeros(3), 1, 0.5, (0.05,))]
+    rows = [replay_row("a", np.zeros(3), -1, 0.5, (0.01, 0.02, 0.03)), replay_row("b", np.zeros(3), 1, 0.5, (0.05,))]
     errs = tcp_error_at(rows, (1, 3, 4))
     assert errs[1] == pytest.approx(0.03)  # both replays reached step 1
     assert errs[3] == pytest.approx(0.03)  # only "a" reached step 3

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 import torch
 
+from stages.tokenize.lfq import tokens_to_codes
 from stages.train_wm.data import Episode
 from stages.train_wm.evaluate import auroc
 from stages.train_wm.success_head import SuccessHead, labelled_frames, success_prob, train_success_head
@@ -19,8 +20,7 @@ def _episode(i: int, success: bool, rng) -> Episode:
 
 
 def _codes(tokens: np.ndarray) -> torch.Tensor:  # (n, 4) ids -> (n, 4 bits, 2, 2) +-1
-    bits = (torch.from_numpy(tokens)[..., None] >> torch.arange(4)) & 1
-    return (bits.float() * 2 - 1).view(len(tokens), 2, 2, 4).permute(0, 3, 1, 2)
+    return tokens_to_codes(torch.from_numpy(tokens).view(len(tokens), 2, 2), 4).float()
 
 
 def test_success_head_reads_success_from_the_frame():
