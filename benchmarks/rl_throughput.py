@@ -4,7 +4,9 @@ vs inside ManiSkill, with the same observation (64x64 views -> tokenizer latent 
 World-model side: the action WM at the ``small`` profile's size (random weights: speed does not
 depend on them), ``num_envs`` batched envs, reward = the ``wm`` module (done head + LPIPS to a
 cached goal, so every step decodes its frame), and once more with the sparse term only (beta 0:
-the env decodes no frame). Simulator side: the push task with the low-poly
+the env decodes no frame); the world model's step and decoding in ``--wm-dtype`` (as the rl stage's
+``wm_dtype``, default auto: bf16 where this CPU runs it fast). The simulator side's observation
+encoding stays fp32 in every case (the policy was trained on fp32 tokens). Simulator side: the push task with the low-poly
 Panda, ``sim_envs`` envs in a DummyVecEnv, reward = the task's rule reward; every frame goes
 through the same tokenizer. Both use the same PPO settings and policy. An env step is a policy step
 in both: one world-model frame = ``frame_skip`` control steps, which the simulator env runs by
@@ -87,6 +89,8 @@ def main() -> None:
     ap.add_argument("--sim-steps", type=int, default=256)
     ap.add_argument("--num-envs", type=int, default=16)
     ap.add_argument("--sim-envs", type=int, default=2)
+    ap.add_argument("--wm-dtype", choices=["fp32", "bf16", "auto"], default="auto",
+                    help="the world-model env's step and decoding (the rl stage's wm_dtype; default as there)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -114,11 +118,11 @@ def main() -> None:
     goal = tok.decode(torch.as_tensor(tokens[None]))
     reward = WMReward(GoalDistance(*goal), alpha=2.0, beta=0.02, theta_sps=0.5, num_envs=args.num_envs)
     wm_env = WorldModelVecEnv(wm, tok, obs_fn, reward, [Start(0, instruction, tokens, first["proprio"])], num_envs=args.num_envs,
-                              max_steps=50, theta_done=0.999, seed=0)
+                              max_steps=50, theta_done=0.999, seed=0, dtype=args.wm_dtype)
     wm_rate = timed_learn(wm_env, args.wm_steps, args.num_envs)
     sparse = WMReward(GoalDistance(*goal), alpha=2.0, beta=0.0, theta_sps=0.5, num_envs=args.num_envs)
     sparse_env = WorldModelVecEnv(wm, tok, obs_fn, sparse, [Start(0, instruction, tokens, first["proprio"])],
-                                  num_envs=args.num_envs, max_steps=50, theta_done=0.999, seed=0)
+                                  num_envs=args.num_envs, max_steps=50, theta_done=0.999, seed=0, dtype=args.wm_dtype)
     sparse_rate = timed_learn(sparse_env, args.wm_steps, args.num_envs)
 
     k = wm.spec.frame_skip
@@ -130,7 +134,8 @@ def main() -> None:
     print(f"PPO env (= policy) steps/s, updates included (one run, 1 torch thread, this machine); "
           f"one step = {k} control steps in both envs")
     print(f"  world-model env: {args.num_envs} batched envs, small-profile action WM "
-          f"(dim {wm.spec.dim}, depth {wm.spec.depth}, {wm.spec.tokens} tokens/frame, {wm.decode_steps} decoding passes), "
+          f"(dim {wm.spec.dim}, depth {wm.spec.depth}, {wm.spec.tokens} tokens/frame, {wm.decode_steps} decoding passes, "
+          f"{wm_env.dtype} (--wm-dtype {args.wm_dtype})), "
           f"wm reward with LPIPS: {wm_rate:.1f}")
     print(f"  world-model env, sparse reward only (no frame decoded): {sparse_rate:.1f}")
     print(f"  ManiSkill env:   {args.sim_envs} envs (push, low-poly Panda, 64x64 x 2 views, tokenizer obs), rule reward: {sim_rate:.1f} ({sim_rate * k:.1f} control steps/s)")

@@ -70,7 +70,7 @@ def train(ctx, cfg, inp) -> dict:
         raw_env = WorldModelVecEnv(inp.wm, inp.tok, inp.obs_fn, chosen.build(parts, cfg, cfg.num_envs),
                                    inp.starts(envs), num_envs=cfg.num_envs, max_steps=cfg.max_episode_steps,
                                    theta_done=cfg.theta_done, seed=cfg.seed, device=inp.device,
-                                   payout_gamma=payout_gamma, guard=guard)
+                                   payout_gamma=payout_gamma, guard=guard, dtype=cfg.wm_dtype)
     env = normalized_rewards(raw_env, cfg)
 
     # ---- PPO from the SFT policy -------------------------------------------------------------------
@@ -102,6 +102,7 @@ def train(ctx, cfg, inp) -> dict:
         metrics.update({f"self_imitation/{k}": v for k, v in model.self_imitation.last_stats.items()})
     if isinstance(raw_env, WorldModelVecEnv):
         metrics["ppo/clipped_action_entries"] = int(raw_env.roll.clip_count)
+        metrics["ppo/wm_dtype"] = raw_env.dtype  # what "auto" resolved to on this machine
     ctx.log.info("rl: %s", {k: v for k, v in metrics.items() if k.startswith("ppo/")})
     if cfg.precision_envs:
         metrics.update(_imagined_precision(ctx, cfg, inp, model.policy))

@@ -22,6 +22,7 @@ import torch
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from stages.common.action_space import executed
+from stages.common.precision import autocast, resolved
 from stages.common.proprio import PROPRIO_DIM
 from stages.rl.rewards.base import RewardModule, StepBatch, success_return
 from stages.sft.observation import ObservationFn, index_obs
@@ -56,7 +57,7 @@ class WorldModelVecEnv(VecEnv):
 
     def __init__(self, wm, tokenizer, obs_fn: ObservationFn, reward: RewardModule, starts: Sequence[Start], *,
                  num_envs: int, max_steps: int, theta_done: float, seed: int = 0, device: str = "cpu",
-                 payout_gamma: float | None = None, guard=None):
+                 payout_gamma: float | None = None, guard=None, dtype: str = "fp32"):
         if not starts:
             raise ValueError("the world-model env needs at least one initial state")
         action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
@@ -64,6 +65,9 @@ class WorldModelVecEnv(VecEnv):
         self.wm, self.tok, self.obs_fn, self.reward = wm, tokenizer, obs_fn, reward
         self.starts, self.max_steps, self.theta_done, self.device = list(starts), max_steps, theta_done, device
         self.payout_gamma, self.guard = payout_gamma, guard  # guard: stages.rl.guard.Guard or None
+        # the world model's step and the decoding of its frames run in this precision ("fp32" | "bf16");
+        # rewards, the proprioception head and the observations stay fp32
+        self.dtype = resolved(device, dtype)
         self.roll = wm.rollout(num_envs, seed=seed)
         self.rng = np.random.default_rng(seed)
         self.current: list[Start] = [self.starts[0]] * num_envs
@@ -81,7 +85,9 @@ class WorldModelVecEnv(VecEnv):
     def _batch(self, tokens: torch.Tensor, done: torch.Tensor, hidden: torch.Tensor) -> StepBatch:
         batch = StepBatch(tokens, done, hidden, np.array([s.env_index for s in self.current]))
         if self.reward.needs_frames:
-            batch.third, batch.wrist = self.tok.decode(tokens)
+            with autocast(self.device, self.dtype):
+                third, wrist = self.tok.decode(tokens)  # each (B, 3, S, S)
+            batch.third, batch.wrist = third.float(), wrist.float()
         return batch
 
     def _obs(self, tokens: torch.Tensor) -> dict[str, np.ndarray]:
@@ -122,7 +128,9 @@ class WorldModelVecEnv(VecEnv):
         if actions is None:
             raise RuntimeError("step_wait() called before step_async()")
         act = torch.as_tensor(actions, device=self.device)
-        out = self.roll.step(act)
+        with autocast(self.device, self.dtype):
+            out = self.roll.step(act)
+        out.done_prob, out.hidden = out.done_prob.float(), out.hidden.float()  # (B,), (B, D)
         if getattr(self.wm, "proprio_head", None) is not None:
             self.proprio = self.wm.next_proprio(self.proprio, act, out.tokens)
         batch = self._batch(out.tokens, out.done_prob, out.hidden)

@@ -83,9 +83,15 @@ class Config(BaseModel):
     done_weight: float = Field(1.0, ge=0, description="weight of the done loss next to the token cross-entropy")
     done_balance: bool = Field(True, description="done and not-done frames weigh half each in the done loss "
                                "(success frames are few: the last frames of successful episodes)")
+    done_negatives: bool = Field(True, description="the action WM also trains on collect's near-miss episodes "
+                                 "(done-head negatives: never done); false = successful and suboptimal episodes only "
+                                 "(the ablation)")
     changed_weight: float = Field(4.0, ge=1, description="cross-entropy weight of target tokens that changed since the "
                                   "previous frame (4 vs 1: h5 PSNR 24.79 vs 23.20 and 4x the gap to shuffled actions, "
                                   "docs/world_model.md)")
+    context_noise: float = Field(0.0, ge=0, le=1, description="training: each clip's context frames get a random "
+                                 "fraction in [0, context_noise] of their tokens replaced by random tokens (targets "
+                                 "stay clean), so rollouts recover from their own errors; 0 = off")
     decode_steps: int = Field(2, ge=1, description="MaskGIT passes per predicted frame in rollouts")
     temperature: float = Field(0.0, ge=0, description="token sampling temperature in rollouts (0 = greedy)")
     holdout_fraction: float = Field(0.1, ge=0, lt=1, description="IND episodes held out if tokenize has no split.json")
@@ -103,6 +109,18 @@ def model_spec(cfg: Config, kind: str, vocab: int, grid: tuple[int, int]) -> WMS
     return WMSpec(kind=kind, vocab_size=vocab, grid=grid, dim=cfg.dim, depth=cfg.depth, heads=cfg.heads,
                   head_depth=cfg.head_depth, mlp_ratio=cfg.mlp_ratio, window=cfg.window,
                   control_tokens=cfg.control_tokens, frame_skip=cfg.frame_skip)
+
+
+def training_episodes(episodes: list, kind: str, done_negatives: bool) -> list:
+    """The episodes the ``kind`` world model trains on.
+
+    The text WM imagines goals from instructions: failures (near-misses) would teach it that an
+    instruction may end beside its goal, so it never sees them. The action WM trains on all of them
+    (its done head learns from the near-misses' never-done frames) unless ``done_negatives`` is off.
+    """
+    if kind == "action" and done_negatives:
+        return list(episodes)
+    return [e for e in episodes if e.kind not in FAILURE_KINDS]
 
 
 def run(ctx) -> None:
@@ -145,16 +163,14 @@ def run(ctx) -> None:
         steps = cfg.action_steps if kind == "action" else cfg.text_steps
         net = WorldModelNet(model_spec(cfg, kind, vocab, grid)).to(ctx.device)
         net.set_action_stats(train_actions.to(ctx.device))
-        # the text WM imagines goals from instructions: failures (near-misses) would teach it that an
-        # instruction may end beside its goal, so it trains on the other episodes; the action WM on all
-        clips = train_eps if kind == "action" else [e for e in train_eps if e.kind not in FAILURE_KINDS]
+        clips = training_episodes(train_eps, kind, cfg.done_negatives)
         sampler = ClipSampler(clips, cfg.window, text_emb, cfg.seed + 17 * i)
         with ctx.progress(steps, f"train_wm: {kind} WM", unit="step") as bar:
             result = train_world_model(net, sampler, steps=steps, batch_size=cfg.batch_size, lr=cfg.lr,
                                        weight_decay=cfg.weight_decay, done_weight=cfg.done_weight,
                                        done_kind=cfg.done_loss, seed=cfg.seed + i, device=ctx.device,
                                        changed_weight=cfg.changed_weight, done_balance=cfg.done_balance,
-                                       progress=bar, log=ctx.log, desc=f"{kind}_wm", curves=curves)
+                                       context_noise=cfg.context_noise, progress=bar, log=ctx.log, desc=f"{kind}_wm", curves=curves)
         save_world_model(net, ctx.out / CHECKPOINTS[kind],
                          {"decode_steps": cfg.decode_steps, "temperature": cfg.temperature})
         models[kind] = WorldModel(net, cfg.decode_steps, cfg.temperature, {k: v.tolist() for k, v in text_emb.items()})

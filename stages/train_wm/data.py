@@ -119,3 +119,19 @@ def random_mask(shape: tuple[int, int, int], gen: torch.Generator, device) -> to
     count = torch.clamp(torch.floor(n * torch.cos(math.pi / 2 * r)), min=1)  # (B, T, 1)
     ranks = torch.rand(b, t, n, generator=gen).to(device).argsort(-1).argsort(-1)
     return ranks < count
+
+
+def corrupt_context(tokens: torch.Tensor, max_rate: float, vocab: int, gen: torch.Generator) -> torch.Tensor:
+    """Context frames with random token noise, for robustness to the model's own rollout errors.
+
+    tokens (B, T, N) clean context frames -> (B, T, N): each clip draws a rate uniformly in
+    [0, ``max_rate``] and replaces that fraction of its tokens (independently per token) by uniform
+    random ones. ``max_rate`` 0 returns ``tokens`` itself.
+    """
+    if max_rate <= 0:
+        return tokens
+    b = tokens.shape[0]
+    rate = torch.rand(b, 1, 1, generator=gen).to(tokens.device) * max_rate  # (B, 1, 1)
+    flip = torch.rand(tokens.shape, generator=gen).to(tokens.device) < rate  # (B, T, N)
+    noise = torch.randint(0, vocab, tokens.shape, generator=gen).to(tokens.device)  # (B, T, N)
+    return torch.where(flip, noise, tokens)

@@ -335,17 +335,21 @@ class WorldModelNet(nn.Module):
         return self.done_head(pooled).squeeze(-1), pooled
 
     # Eq. 1: next-frame tokens and done signal from frames 0..t and the control
-    def forward(self, tokens: torch.Tensor, control: torch.Tensor, mask: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, tokens: torch.Tensor, control: torch.Tensor, mask: torch.Tensor,
+                context: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Teacher-forced training pass over a clip.
 
         tokens (B, T+1, N) clean; control (B, T, 7) actions or (B, 384) text; mask (B, T, N) bool, True
-        where a target token of frames 1..T is hidden. Returns logits (B, T, N, V) and done logits
-        (B, T) of frames 1..T.
+        where a target token of frames 1..T is hidden; ``context`` (B, T, N) replaces frames 0..T-1 as the
+        backbone's input (e.g. noised, ``data.corrupt_context``), targets stay ``tokens[:, 1:]``.
+        Returns logits (B, T, N, V) and done logits (B, T) of frames 1..T.
         """
         b, t1, n = tokens.shape
         t = t1 - 1
-        ctx = self.backbone(tokens[:, :t], control).reshape(b * t, n, -1)
+        context = tokens[:, :t] if context is None else context
+        if tuple(context.shape) != (b, t, n):
+            raise ValueError(f"context must be (B, T, N) = {(b, t, n)}, got {tuple(context.shape)}")
+        ctx = self.backbone(context, control).reshape(b * t, n, -1)
         target = tokens[:, 1:].reshape(b * t, n)
         masked = torch.where(mask.reshape(b * t, n), torch.full_like(target, self.mask_id), target)
         logits = self.logits(self.head(ctx, masked)).view(b, t, n, -1)

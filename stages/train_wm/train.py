@@ -7,7 +7,7 @@ import time
 import torch
 import torch.nn.functional as F
 
-from stages.train_wm.data import ClipSampler, random_mask
+from stages.train_wm.data import ClipSampler, corrupt_context, random_mask
 from stages.train_wm.model import WorldModelNet
 
 
@@ -35,17 +35,20 @@ def done_loss(logit: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, ki
 
 # Eq. 5: token cross-entropy plus the done loss (weighted by done_weight in train_world_model)
 def losses(net: WorldModelNet, batch: dict, gen: torch.Generator, done_kind: str,
-           changed_weight: float = 1.0, done_balance: bool = False) -> dict[str, torch.Tensor]:
+           changed_weight: float = 1.0, done_balance: bool = False, context_noise: float = 0.0
+           ) -> dict[str, torch.Tensor]:
     """Token cross-entropy over hidden target tokens, token accuracy, and the done loss of one batch.
 
     ``changed_weight`` multiplies the cross-entropy of target tokens that differ from the previous
-    frame's token at that position (the few tokens that carry the action's effect).
+    frame's token at that position (the few tokens that carry the action's effect). ``context_noise``:
+    the backbone reads context frames with up to this fraction of random tokens (targets stay clean).
     """
     tokens, valid = batch["tokens"], batch["valid"]  # (B, T+1, N), (B, T)
     b, t1, n = tokens.shape
     mask = random_mask((b, t1 - 1, n), gen, tokens.device)  # (B, T, N)
     control = batch["actions"] if net.spec.kind == "action" else batch["text"]
-    logits, done = net(tokens, control, mask)  # (B, T, N, V), (B, T)
+    context = corrupt_context(tokens[:, :-1], context_noise, net.spec.vocab_size, gen)  # (B, T, N)
+    logits, done = net(tokens, control, mask, context)  # (B, T, N, V), (B, T)
     target = tokens[:, 1:]
     changed = (target != tokens[:, :-1]).float()  # (B, T, N)
     hidden = mask.float() * valid[..., None]  # (B, T, N)
@@ -59,7 +62,7 @@ def losses(net: WorldModelNet, batch: dict, gen: torch.Generator, done_kind: str
 
 def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, batch_size: int, lr: float,
                       weight_decay: float, done_weight: float, done_kind: str, seed: int, device,
-                      changed_weight: float = 1.0, done_balance: bool = False,
+                      changed_weight: float = 1.0, done_balance: bool = False, context_noise: float = 0.0,
                       progress=None, log=None, desc: str = "", curves=None) -> dict:
     """Train ``net`` in place with AdamW (linear warm-up, cosine decay); returns the loss history and time.
 
@@ -80,7 +83,8 @@ def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, b
     use_bf16 = torch.device(device).type == "cuda"
     for step in range(steps):
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_bf16):
-            out = losses(net, sampler.sample(batch_size, device), gen, done_kind, changed_weight, done_balance)
+            out = losses(net, sampler.sample(batch_size, device), gen, done_kind, changed_weight, done_balance,
+                         context_noise)
         loss = out["ce"] + done_weight * out["done"]
         if not torch.isfinite(loss):
             raise FloatingPointError(f"{desc} world-model loss became {loss.item()} at step {step}")

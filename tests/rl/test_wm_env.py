@@ -19,11 +19,11 @@ def parts():
     return tok, wm, goals
 
 
-def _vec(parts, n=3, theta_done=0.999, max_steps=5, beta=0.01, payout_gamma=None, guard=None):
+def _vec(parts, n=3, theta_done=0.999, max_steps=5, beta=0.01, payout_gamma=None, guard=None, dtype="fp32"):
     tok, wm, (g3, gw) = parts
     reward = WMReward(GoalDistance(g3, gw), alpha=1.0, beta=beta, theta_sps=0.5, num_envs=n)
     return WorldModelVecEnv(wm, tok, obs_fn(tok), reward, starts_for(tok), num_envs=n, max_steps=max_steps,
-                            theta_done=theta_done, seed=0, payout_gamma=payout_gamma, guard=guard)
+                            theta_done=theta_done, seed=0, payout_gamma=payout_gamma, guard=guard, dtype=dtype)
 
 
 def test_gym_env_passes_sb3_check_env(parts):
@@ -124,3 +124,18 @@ def test_a_sparse_only_reward_decodes_no_frame_and_pays_the_same(parts, monkeypa
     dense.reset()
     dense.step(np.zeros((3, 7), np.float32))
     assert calls  # the dense term needs the decoded frames
+
+
+def test_bf16_steps_give_fp32_rewards_close_to_fp32(parts):
+    """bf16 autocast of the world model and its decoding: fp32 rewards and done probabilities, the same obs layout."""
+    a, b = _vec(parts, dtype="fp32"), _vec(parts, dtype="bf16")
+    assert (a.dtype, b.dtype) == ("fp32", "bf16")
+    oa, ob = a.reset(), b.reset()
+    assert np.array_equal(oa["codes"], ob["codes"])
+    _, ra, _, ia = a.step(np.zeros((3, 7), np.float32))
+    obs, rb, _, ib = b.step(np.zeros((3, 7), np.float32))
+    assert rb.dtype == np.float32 and np.isfinite(rb).all() and obs["codes"].dtype == oa["codes"].dtype
+    assert np.allclose(ra, rb, atol=0.05)  # alpha 1 x sparse + 0.01 x (1 - LPIPS): a bf16 wobble, not a new reward
+    assert all(0.0 <= i["done_prob"] <= 1.0 for i in ib)
+    with pytest.raises(ValueError, match="precision must be"):
+        _vec(parts, dtype="fp16")
