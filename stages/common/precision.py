@@ -1,9 +1,10 @@
 """Mixed precision: bf16 autocast where the hardware runs bf16 matmuls fast, fp32 elsewhere.
 
 CPUs differ: on one 2-core machine without native bf16 a bf16 matmul ran at ~1 GFLOP/s (fp32 ~85);
-on a 2-core Xeon with AMX, bf16 linear layers ran ~5x faster than fp32 (benchmarks/wm_precision.py).
+on a 2-core Xeon with AMX, a bf16 linear layer ran 4x and a bare matmul ~6x faster than fp32
+(benchmarks/wm_precision.py).
 So ``auto`` decides by measuring: bf16 on CUDA always, on a CPU only if a bf16 matmul is at least
-``FAST_RATIO`` times faster than fp32 there (measured once per process, ~20 ms).
+``FAST_RATIO`` times faster than fp32 there (measured once per process; 38 ms on that Xeon).
 
 ```python
 from stages.common.precision import autocast
@@ -12,8 +13,8 @@ with autocast(device, "auto"):   # "fp32" | "bf16" | "auto"
 ```
 
 Results then depend on the machine (as they already do between CPU and CUDA); the device and this
-decision are not part of an artifact's key. Manifests record the precision used
-(``resolved(device, mode)``).
+decision are not part of an artifact's key. The rl stage records what ``auto`` chose in its
+``metrics.json`` (``ppo/wm_dtype``).
 """
 from __future__ import annotations
 

@@ -91,7 +91,8 @@ class Config(BaseModel):
                                   "docs/world_model.md)")
     context_noise: float = Field(0.0, ge=0, le=1, description="training: each clip's context frames get a random "
                                  "fraction in [0, context_noise] of their tokens replaced by random tokens (targets "
-                                 "stay clean), so rollouts recover from their own errors; 0 = off")
+                                 "stay clean), meant to teach rollouts to recover from their own errors; 0 = off (0.2 changed nothing "
+                                 "measurable, docs/world_model.md)")
     decode_steps: int = Field(2, ge=1, description="MaskGIT passes per predicted frame in rollouts")
     temperature: float = Field(0.0, ge=0, description="token sampling temperature in rollouts (0 = greedy)")
     holdout_fraction: float = Field(0.1, ge=0, lt=1, description="IND episodes held out if tokenize has no split.json")
