@@ -3,17 +3,20 @@ PPO step is made of, and (given trained artifacts) what bf16 does to the action 
 open-loop predictions.
 
 Speed (random weights at the ``small`` profile's sizes, 1 torch thread, ``--envs`` batched envs):
-one linear layer, a world-model rollout step, a tokenizer decode, a tokenizer encode, and a
-world-model training step (8 clips). Fidelity (``--collect/--tokenize/--train-wm``): open-loop
+one linear layer, a world-model rollout step, a tokenizer decode (also with the decoder
+channels-last, as the rl stage runs it in bf16), a tokenizer encode, LPIPS features (also
+channels-last), and a world-model training step (8 clips). Fidelity (``--collect/--tokenize/--train-wm``): open-loop
 rollouts from held-out IND and OOD frames under the recorded actions, in fp32 and in bf16; token
 agreement between the two, each one's token accuracy against the real frames, and the largest
-done-probability difference, at horizons 1, 5 and 15.
+done-probability difference, at horizons 1, 5 and 15; and the dense reward's LPIPS distance
+(frames to their episode's last frame) in bf16 against fp32.
 
     PYTHONPATH=. .venv/bin/python benchmarks/wm_precision.py [--collect C --tokenize T --train-wm W]
 """
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import sys
 import time
@@ -25,7 +28,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.rl_throughput import action_wm, tokenizer  # noqa: E402
-from stages.common.precision import autocast, cpu_bf16_speedup  # noqa: E402
+from stages.common.lpips import get_lpips  # noqa: E402
+from stages.common.precision import autocast, conv_layout, cpu_bf16_speedup  # noqa: E402
 
 
 def timed(fn, reps: int) -> float:
@@ -66,6 +70,14 @@ def speed(envs: int) -> None:
         both("world-model rollout step", lambda: roll.step(acts), 5)
         both("tokenizer decode (both views)", lambda: tok.decode(frames), 5)
         both("tokenizer encode (both views)", lambda: tok.encode(images, images), 5)
+        fast = tokenizer()
+        conv_layout(fast.net.decoder, "cpu", "bf16")
+        both("tokenizer decode, decoder channels-last", lambda: fast.decode(frames), 5)
+        lp = get_lpips("cpu")
+        x = torch.rand(envs, 3, 64, 64) * 2 - 1
+        both(f"LPIPS features ({envs} frames, one view)", lambda: lp.features(x), 5)
+        lp_fast = conv_layout(copy.deepcopy(lp), "cpu", "bf16")
+        both("LPIPS features, channels-last", lambda: lp_fast.features(x), 5)
     net = wm.net.train()
     gen = torch.Generator().manual_seed(0)
     n, t = wm.spec.tokens, wm.spec.window
@@ -123,6 +135,31 @@ def fidelity(collect: Path, tok_dir: Path, wm_dir: Path, per_split: int) -> None
         print(f"  {name} ({k} starts): " + "; ".join(cells)
               + f"; max |done fp32 - bf16| {float((da - db).abs().max()):.3f}, "
                 f"done >= 0.5 agree {float(((da >= 0.5) == (db >= 0.5)).float().mean()):.3f}")
+        lpips_fidelity(tok, chosen)
+
+
+def lpips_fidelity(tok, chosen: list) -> None:
+    """The dense reward's LPIPS distance in bf16 vs fp32: each episode's frames to its last frame."""
+    from stages.rl.rewards import GoalDistance
+
+    third, wrist, goal_index, goals3, goalsw = [], [], [], [], []
+    with torch.no_grad():
+        for g, ep in enumerate(chosen):
+            frames = torch.from_numpy(ep.tokens[:: max(1, len(ep.tokens) // 8)].astype(np.int64)).view(-1, *tok.grid)  # (~8, h, w)
+            t3, tw = tok.decode(frames)
+            third.append(t3)
+            wrist.append(tw)
+            goal_index += [g] * len(frames)
+            l3, lw = tok.decode(torch.from_numpy(ep.tokens[-1:].astype(np.int64)).view(1, *tok.grid))
+            goals3.append(l3)
+            goalsw.append(lw)
+    third, wrist, goal_index = torch.cat(third), torch.cat(wrist), np.asarray(goal_index)
+    d = {m: GoalDistance(torch.cat(goals3), torch.cat(goalsw), dtype=m)(third, wrist, goal_index) for m in ("fp32", "bf16")}
+    diff = np.abs(d["bf16"] - d["fp32"])
+    ranks = [np.argsort(np.argsort(d[m])) for m in ("fp32", "bf16")]
+    print(f"  LPIPS to the episode's last frame ({len(goal_index)} decoded frames, {len(chosen)} episodes): "
+          f"mean {d['fp32'].mean():.4f}, |bf16 - fp32| mean {diff.mean():.5f} max {diff.max():.5f}, "
+          f"Spearman {np.corrcoef(*ranks)[0, 1]:.4f}")
 
 
 def main() -> None:

@@ -122,7 +122,8 @@ class LPIPS(nn.Module):
             if pool:
                 h = F.max_pool2d(h, kernel_size=3, stride=2)
             h = F.relu(conv(h))
-            out.append(h / (h.pow(2).sum(dim=1, keepdim=True).sqrt() + _EPS))  # (N, C_l, H_l, W_l)
+            f = h.float()  # normalised in fp32 even when the convolutions ran under bf16 autocast
+            out.append(f / (f.pow(2).sum(dim=1, keepdim=True).sqrt() + _EPS))  # (N, C_l, H_l, W_l)
         return out
 
     def distance_from_features(self, fx: list[torch.Tensor], fy: list[torch.Tensor]) -> torch.Tensor:

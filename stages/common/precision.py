@@ -59,6 +59,19 @@ def resolved(device: str | torch.device, mode: Precision) -> str:
     return "bf16" if cpu_bf16_speedup() >= FAST_RATIO else "fp32"
 
 
+def conv_layout(module: torch.nn.Module, device: str | torch.device, mode: Precision) -> torch.nn.Module:
+    """``module`` in place in channels-last memory layout where its convolutions run in bf16 on a CPU.
+
+    oneDNN's bf16 convolutions are faster channels-last (2-core Xeon with AMX, 1 thread: the
+    tokenizer's decoder 33 -> 23 ms, LPIPS features 8.2 -> 4.9 ms for 16 frames); in fp32 it made no
+    difference worth having, so fp32 and CUDA leave the module as it is. Values are unchanged up to
+    rounding; returns ``module``.
+    """
+    if torch.device(device).type == "cpu" and resolved(device, mode) == "bf16":
+        module.to(memory_format=torch.channels_last)
+    return module
+
+
 def autocast(device: str | torch.device, mode: Precision):
     """A context in which matmuls run in the resolved precision (a no-op for fp32)."""
     if resolved(device, mode) == "fp32":

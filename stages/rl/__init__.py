@@ -82,7 +82,7 @@ class Config(BaseModel):
                                    "planner demos take ~100-280 control steps = 25-70 steps at frame_skip 4)")
     num_envs: int = Field(16, ge=1, description="world-model environments stepped as one batch")
     wm_dtype: Literal["fp32", "bf16", "auto"] = Field(
-        "auto", description="the world-model env's step and frame decoding: auto = bf16 on CUDA and on a CPU that runs "
+        "auto", description="the world-model env's step, frame decoding and LPIPS reward convolutions: auto = bf16 on CUDA and on a CPU that runs "
         "bf16 matmuls >= 1.5x faster than fp32 (measured at start), else fp32 (stages.common.precision; same "
         "token accuracy as fp32 on held-out rollouts, benchmarks/wm_precision.py)")
     sim_envs: int = Field(2, ge=1, description="simulator environments for reward: rule")

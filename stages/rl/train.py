@@ -57,7 +57,7 @@ def train(ctx, cfg, inp) -> dict:
         torch.save({k: v.state_dict() for k, v in parts.heads.items()}, ctx.out / "reward_heads.pt")
 
     goal_third, goal_wrist = inp.goal_frames()
-    parts.distance = GoalDistance(goal_third, goal_wrist, inp.device)
+    parts.distance = GoalDistance(goal_third, goal_wrist, inp.device, cfg.wm_dtype)  # LPIPS in the env's precision
 
     # ---- reward diagnostics on held-out successful episodes ------------------------------------------
     metrics.update(_diagnose(ctx, cfg, inp, wanted, parts))

@@ -22,7 +22,7 @@ import torch
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from stages.common.action_space import executed
-from stages.common.precision import autocast, resolved
+from stages.common.precision import autocast, conv_layout, resolved
 from stages.common.proprio import PROPRIO_DIM
 from stages.rl.rewards.base import RewardModule, StepBatch, success_return
 from stages.sft.observation import ObservationFn, index_obs
@@ -68,6 +68,7 @@ class WorldModelVecEnv(VecEnv):
         # the world model's step and the decoding of its frames run in this precision ("fp32" | "bf16");
         # rewards, the proprioception head and the observations stay fp32
         self.dtype = resolved(device, dtype)
+        conv_layout(tokenizer.net.decoder, device, self.dtype)  # bf16 on a CPU: the decoder's faster layout
         self.roll = wm.rollout(num_envs, seed=seed)
         self.rng = np.random.default_rng(seed)
         self.current: list[Start] = [self.starts[0]] * num_envs

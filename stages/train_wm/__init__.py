@@ -93,6 +93,9 @@ class Config(BaseModel):
                                  "fraction in [0, context_noise] of their tokens replaced by random tokens (targets "
                                  "stay clean), meant to teach rollouts to recover from their own errors; 0 = off (0.2 changed nothing "
                                  "measurable, docs/world_model.md)")
+    self_context: float = Field(0.0, ge=0, le=1, description="training: scheduled sampling, each context frame "
+                                "after the first is with this probability the model's own one-step prediction "
+                                "(greedy, one pass, no gradient; ~1.35x the step's cost); 0 = off (0.5 did not help, docs/world_model.md)")
     decode_steps: int = Field(2, ge=1, description="MaskGIT passes per predicted frame in rollouts")
     temperature: float = Field(0.0, ge=0, description="token sampling temperature in rollouts (0 = greedy)")
     holdout_fraction: float = Field(0.1, ge=0, lt=1, description="IND episodes held out if tokenize has no split.json")
@@ -171,7 +174,7 @@ def run(ctx) -> None:
                                        weight_decay=cfg.weight_decay, done_weight=cfg.done_weight,
                                        done_kind=cfg.done_loss, seed=cfg.seed + i, device=ctx.device,
                                        changed_weight=cfg.changed_weight, done_balance=cfg.done_balance,
-                                       context_noise=cfg.context_noise, progress=bar, log=ctx.log, desc=f"{kind}_wm", curves=curves)
+                                       context_noise=cfg.context_noise, self_context=cfg.self_context, progress=bar, log=ctx.log, desc=f"{kind}_wm", curves=curves)
         save_world_model(net, ctx.out / CHECKPOINTS[kind],
                          {"decode_steps": cfg.decode_steps, "temperature": cfg.temperature})
         models[kind] = WorldModel(net, cfg.decode_steps, cfg.temperature, {k: v.tolist() for k, v in text_emb.items()})

@@ -135,3 +135,20 @@ def corrupt_context(tokens: torch.Tensor, max_rate: float, vocab: int, gen: torc
     flip = torch.rand(tokens.shape, generator=gen).to(tokens.device) < rate  # (B, T, N)
     noise = torch.randint(0, vocab, tokens.shape, generator=gen).to(tokens.device)  # (B, T, N)
     return torch.where(flip, noise, tokens)
+
+
+def mix_context(context: torch.Tensor, predicted: torch.Tensor, rate: float, gen: torch.Generator) -> torch.Tensor:
+    """Scheduled sampling: context frames replaced, each with probability ``rate``, by the model's own predictions.
+
+    context (B, T, N) frames 0..T-1 the backbone reads; predicted (B, T, N) the model's one-step
+    predictions of frames 1..T. Frame 0 is the observed start (a rollout's too) and stays; frame
+    j >= 1 becomes ``predicted[:, j - 1]`` (made from the real frames before it) with probability
+    ``rate``, drawn per clip and frame. ``rate`` 0 returns ``context`` itself.
+    """
+    if rate <= 0:
+        return context
+    b, t, _ = context.shape
+    pick = torch.rand(b, t, 1, generator=gen).to(context.device) < rate  # (B, T, 1)
+    pick[:, 0] = False
+    shifted = torch.cat([context[:, :1], predicted[:, :-1]], 1)  # (B, T, N): prediction of frame j at j
+    return torch.where(pick, shifted, context)

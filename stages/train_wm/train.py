@@ -7,7 +7,7 @@ import time
 import torch
 import torch.nn.functional as F
 
-from stages.train_wm.data import ClipSampler, corrupt_context, random_mask
+from stages.train_wm.data import ClipSampler, corrupt_context, mix_context, random_mask
 from stages.train_wm.model import WorldModelNet
 
 
@@ -35,19 +35,23 @@ def done_loss(logit: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, ki
 
 # Eq. 5: token cross-entropy plus the done loss (weighted by done_weight in train_world_model)
 def losses(net: WorldModelNet, batch: dict, gen: torch.Generator, done_kind: str,
-           changed_weight: float = 1.0, done_balance: bool = False, context_noise: float = 0.0
-           ) -> dict[str, torch.Tensor]:
+           changed_weight: float = 1.0, done_balance: bool = False, context_noise: float = 0.0,
+           self_context: float = 0.0) -> dict[str, torch.Tensor]:
     """Token cross-entropy over hidden target tokens, token accuracy, and the done loss of one batch.
 
     ``changed_weight`` multiplies the cross-entropy of target tokens that differ from the previous
     frame's token at that position (the few tokens that carry the action's effect). ``context_noise``:
     the backbone reads context frames with up to this fraction of random tokens (targets stay clean).
+    ``self_context``: that fraction of context frames is the model's own one-step prediction
+    (scheduled sampling, ``data.mix_context``; one extra forward pass without gradients).
     """
     tokens, valid = batch["tokens"], batch["valid"]  # (B, T+1, N), (B, T)
     b, t1, n = tokens.shape
     mask = random_mask((b, t1 - 1, n), gen, tokens.device)  # (B, T, N)
     control = batch["actions"] if net.spec.kind == "action" else batch["text"]
     context = corrupt_context(tokens[:, :-1], context_noise, net.spec.vocab_size, gen)  # (B, T, N)
+    if self_context > 0:
+        context = mix_context(context, own_predictions(net, tokens, control, context), self_context, gen)
     logits, done = net(tokens, control, mask, context)  # (B, T, N, V), (B, T)
     target = tokens[:, 1:]
     changed = (target != tokens[:, :-1]).float()  # (B, T, N)
@@ -60,10 +64,18 @@ def losses(net: WorldModelNet, batch: dict, gen: torch.Generator, done_kind: str
     return {"ce": ce, "done": dl, "acc": acc}
 
 
+@torch.no_grad()
+def own_predictions(net: WorldModelNet, tokens: torch.Tensor, control: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+    """The model's greedy one-pass predictions (B, T, N) of frames 1..T from ``context`` (B, T, N), all targets hidden."""
+    b, t1, n = tokens.shape
+    logits, _ = net(tokens, control, torch.ones(b, t1 - 1, n, dtype=torch.bool, device=tokens.device), context)
+    return logits.argmax(-1)  # (B, T, N)
+
+
 def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, batch_size: int, lr: float,
                       weight_decay: float, done_weight: float, done_kind: str, seed: int, device,
                       changed_weight: float = 1.0, done_balance: bool = False, context_noise: float = 0.0,
-                      progress=None, log=None, desc: str = "", curves=None) -> dict:
+                      self_context: float = 0.0, progress=None, log=None, desc: str = "", curves=None) -> dict:
     """Train ``net`` in place with AdamW (linear warm-up, cosine decay); returns the loss history and time.
 
     ``curves`` (``stages.common.curves.Curves``), when given, receives the same points as the history
@@ -84,7 +96,7 @@ def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, b
     for step in range(steps):
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_bf16):
             out = losses(net, sampler.sample(batch_size, device), gen, done_kind, changed_weight, done_balance,
-                         context_noise)
+                         context_noise, self_context)
         loss = out["ce"] + done_weight * out["done"]
         if not torch.isfinite(loss):
             raise FloatingPointError(f"{desc} world-model loss became {loss.item()} at step {step}")

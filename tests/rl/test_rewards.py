@@ -113,3 +113,17 @@ def test_every_registered_module_builds_from_the_rl_config(scene):
         module = cls.build(parts, Config(reward=name), num_envs=2)
         assert module.name == name and module.max_step_reward > 0
         assert cls.needs_head is None or cls.needs_head in parts.heads
+
+
+def test_bf16_lpips_stays_close_to_fp32_and_leaves_the_shared_network_alone(scene):
+    from stages.common.lpips import get_lpips
+
+    (s3, sw), (g3, gw) = scene
+    ks = torch.linspace(0, 1, 5)[:, None, None, None]
+    third, wrist = (1 - ks) * s3 + ks * g3, (1 - ks) * sw + ks * gw  # (5, 3, H, W) from start to goal
+    fp32 = GoalDistance(g3, gw, dtype="fp32")(third, wrist, np.zeros(5, dtype=int))
+    low = GoalDistance(g3, gw, dtype="bf16")
+    bf16 = low(third, wrist, np.zeros(5, dtype=int))
+    assert low.net is not get_lpips("cpu") and get_lpips("cpu").convs[0].weight.is_contiguous()
+    assert np.abs(bf16 - fp32).max() < 0.02, (fp32, bf16)
+    assert np.all(np.diff(bf16) < 0)  # the order along the path survives

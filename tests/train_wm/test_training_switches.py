@@ -46,3 +46,33 @@ def test_done_negatives_switch_selects_the_action_wm_episodes():
     assert [e.kind for e in training_episodes(eps, "action", True)] == ["optimal", "near_miss", "perturbed", "near_miss"]
     assert [e.kind for e in training_episodes(eps, "action", False)] == ["optimal", "perturbed"]
     assert [e.kind for e in training_episodes(eps, "text", True)] == ["optimal", "perturbed"]
+
+
+def test_self_context_mixes_in_own_predictions_after_the_first_frame():
+    from stages.train_wm.data import mix_context
+    from stages.train_wm.train import own_predictions
+
+    gen = torch.Generator().manual_seed(0)
+    context = torch.randint(0, V, (256, 4, 16))
+    predicted = torch.randint(0, V, (256, 4, 16))
+    assert mix_context(context, predicted, 0.0, gen) is context
+    mixed = mix_context(context, predicted, 0.5, gen)
+    assert torch.equal(mixed[:, 0], context[:, 0])  # the observed start frame stays
+    from_pred = (mixed[:, 1:] == predicted[:, :-1]).all(-1)  # (B, T-1) frame j is the prediction of frame j
+    from_real = (mixed[:, 1:] == context[:, 1:]).all(-1)
+    assert bool((from_pred | from_real).all())
+    assert 0.4 < float(from_pred.float().mean()) < 0.6
+    assert torch.equal(mix_context(context, predicted, 1.0, gen)[:, 1:], predicted[:, :-1])
+
+    torch.manual_seed(0)
+    net = WorldModelNet(WMSpec(kind="action", vocab_size=V, grid=GRID, dim=32, depth=2, heads=2, window=6,
+                               control_tokens=3))
+    tokens = torch.randint(0, V, (3, 5, 16))  # (B, T+1, N)
+    batch = {"tokens": tokens, "valid": torch.ones(3, 4), "actions": torch.randn(3, 4, 7), "done": torch.zeros(3, 4)}
+    pred = own_predictions(net, tokens, batch["actions"], tokens[:, :-1])
+    assert pred.shape == (3, 4, 16) and not pred.requires_grad
+    clean = losses(net, batch, torch.Generator().manual_seed(1), "bce")
+    own = losses(net, batch, torch.Generator().manual_seed(1), "bce", self_context=1.0)
+    assert not torch.allclose(clean["ce"], own["ce"])
+    own["ce"].backward()  # gradients flow through the pass that reads the mixed context
+    assert net.logits.weight.grad is not None

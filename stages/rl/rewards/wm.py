@@ -9,30 +9,43 @@ the agent to move away from the goal): tests/rl pin the sign.
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import torch
 
+from stages.common.precision import autocast, conv_layout, resolved
 from stages.rl.rewards.base import RewardModule, RewardParts, StepBatch
 
 
 class GoalDistance:
-    """LPIPS distance of frames to their goal frames, with the goals' features cached."""
+    """LPIPS distance of frames to their goal frames, with the goals' features cached.
 
-    def __init__(self, goal_third: torch.Tensor, goal_wrist: torch.Tensor, device: str = "cpu"):
+    ``dtype`` ("fp32" | "bf16" | "auto", stages.common.precision): the AlexNet convolutions' precision
+    (features are normalised and compared in fp32); bf16 uses a channels-last copy of the network.
+    """
+
+    def __init__(self, goal_third: torch.Tensor, goal_wrist: torch.Tensor, device: str = "cpu", dtype: str = "fp32"):
         from stages.common.lpips import get_lpips
 
-        self.net = get_lpips(device)
+        self.dtype = resolved(device, dtype)
+        net = get_lpips(device)
+        self.net = net if self.dtype == "fp32" else conv_layout(copy.deepcopy(net), device, self.dtype)
         self.device = device
-        with torch.no_grad():
-            self.goal_feats = [self.net.features(g.to(device) * 2 - 1) for g in (goal_third, goal_wrist)]  # [(G, C, h, w)]
+        self.goal_feats = self.features(goal_third)[0], self.features(goal_wrist)[0]  # [(G, C, h, w)] per view
+
+    @torch.no_grad()
+    def features(self, *views: torch.Tensor) -> list[list[torch.Tensor]]:
+        """LPIPS features of each view's frames (N, 3, H, W) in [0, 1]."""
+        with autocast(self.device, self.dtype):
+            return [self.net.features(v.to(self.device) * 2 - 1) for v in views]
 
     @torch.no_grad()
     def __call__(self, third: torch.Tensor, wrist: torch.Tensor, goal_index: np.ndarray) -> np.ndarray:
         """(B,) mean LPIPS over both views of frames (B, 3, H, W) in [0, 1] to goals[goal_index]."""
         idx = torch.as_tensor(goal_index, dtype=torch.long, device=self.device)
         d = 0.0
-        for view, gf in zip((third, wrist), self.goal_feats):
-            f = self.net.features(view.to(self.device) * 2 - 1)
+        for f, gf in zip(self.features(third, wrist), self.goal_feats):
             d = d + self.net.distance_from_features(f, [g[idx] for g in gf])
         return (d / 2).cpu().numpy().astype(np.float64)
 
