@@ -4,8 +4,8 @@ vs inside ManiSkill, with the same observation (64x64 views -> tokenizer latent 
 World-model side: the action WM at the ``small`` profile's size (random weights: speed does not
 depend on them), ``num_envs`` batched envs, reward = the ``wm`` module (done head + LPIPS to a
 cached goal, so every step decodes its frame), and once more with the sparse term only (beta 0:
-the env decodes no frame); the world model's step and decoding in ``--wm-dtype`` (as the rl stage's
-``wm_dtype``, default auto: bf16 where this CPU runs it fast). The simulator side's observation
+the env decodes no frame); the world model's step, decoding and LPIPS convolutions in ``--wm-dtype``
+(as the rl stage's ``wm_dtype``, default auto: bf16 where this CPU runs it fast). The simulator side's observation
 encoding stays fp32 in every case (the policy was trained on fp32 tokens). Simulator side: the push task with the low-poly
 Panda, ``sim_envs`` envs in a DummyVecEnv, reward = the task's rule reward; every frame goes
 through the same tokenizer. Both use the same PPO settings and policy. An env step is a policy step
@@ -90,7 +90,7 @@ def main() -> None:
     ap.add_argument("--num-envs", type=int, default=16)
     ap.add_argument("--sim-envs", type=int, default=2)
     ap.add_argument("--wm-dtype", choices=["fp32", "bf16", "auto"], default="auto",
-                    help="the world-model env's step and decoding (the rl stage's wm_dtype; default as there)")
+                    help="the world-model env's step, decoding and LPIPS (the rl stage's wm_dtype; default as there)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -116,11 +116,11 @@ def main() -> None:
 
     wm = action_wm(tok)
     goal = tok.decode(torch.as_tensor(tokens[None]))
-    reward = WMReward(GoalDistance(*goal), alpha=2.0, beta=0.02, theta_sps=0.5, num_envs=args.num_envs)
+    reward = WMReward(GoalDistance(*goal, dtype=args.wm_dtype), alpha=2.0, beta=0.02, theta_sps=0.5, num_envs=args.num_envs)
     wm_env = WorldModelVecEnv(wm, tok, obs_fn, reward, [Start(0, instruction, tokens, first["proprio"])], num_envs=args.num_envs,
                               max_steps=50, theta_done=0.999, seed=0, dtype=args.wm_dtype)
     wm_rate = timed_learn(wm_env, args.wm_steps, args.num_envs)
-    sparse = WMReward(GoalDistance(*goal), alpha=2.0, beta=0.0, theta_sps=0.5, num_envs=args.num_envs)
+    sparse = WMReward(GoalDistance(*goal, dtype=args.wm_dtype), alpha=2.0, beta=0.0, theta_sps=0.5, num_envs=args.num_envs)
     sparse_env = WorldModelVecEnv(wm, tok, obs_fn, sparse, [Start(0, instruction, tokens, first["proprio"])],
                                   num_envs=args.num_envs, max_steps=50, theta_done=0.999, seed=0, dtype=args.wm_dtype)
     sparse_rate = timed_learn(sparse_env, args.wm_steps, args.num_envs)

@@ -66,7 +66,8 @@ class WorldModelVecEnv(VecEnv):
         self.starts, self.max_steps, self.theta_done, self.device = list(starts), max_steps, theta_done, device
         self.payout_gamma, self.guard = payout_gamma, guard  # guard: stages.rl.guard.Guard or None
         # the world model's step and the decoding of its frames run in this precision ("fp32" | "bf16");
-        # rewards, the proprioception head and the observations stay fp32
+        # the proprioception head and the observations stay fp32, the reward module keeps its own
+        # (the rl stage gives the LPIPS distance the same wm_dtype)
         self.dtype = resolved(device, dtype)
         conv_layout(tokenizer.net.decoder, device, self.dtype)  # bf16 on a CPU: the decoder's faster layout
         self.roll = wm.rollout(num_envs, seed=seed)

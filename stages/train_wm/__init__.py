@@ -95,7 +95,7 @@ class Config(BaseModel):
                                  "measurable, docs/world_model.md)")
     self_context: float = Field(0.0, ge=0, le=1, description="training: scheduled sampling, each context frame "
                                 "after the first is with this probability the model's own one-step prediction "
-                                "(greedy, one pass, no gradient; ~1.35x the step's cost); 0 = off (0.5 did not help, docs/world_model.md)")
+                                "(greedy, one pass, no gradient; 1.3x the training time, measured); 0 = off (0.5 did not help, docs/world_model.md)")
     decode_steps: int = Field(2, ge=1, description="MaskGIT passes per predicted frame in rollouts")
     temperature: float = Field(0.0, ge=0, description="token sampling temperature in rollouts (0 = greedy)")
     holdout_fraction: float = Field(0.1, ge=0, lt=1, description="IND episodes held out if tokenize has no split.json")

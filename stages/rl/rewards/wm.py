@@ -32,7 +32,7 @@ class GoalDistance:
         net = get_lpips(device)
         self.net = net if self.dtype == "fp32" else conv_layout(copy.deepcopy(net), device, self.dtype)
         self.device = device
-        self.goal_feats = self.features(goal_third)[0], self.features(goal_wrist)[0]  # [(G, C, h, w)] per view
+        self.goal_feats = self.features(goal_third, goal_wrist)  # per view: [(G, C, h, w)] per layer
 
     @torch.no_grad()
     def features(self, *views: torch.Tensor) -> list[list[torch.Tensor]]:
