@@ -20,6 +20,8 @@ Outputs:
     policy.zip          the PPO policy (stable-baselines3), loaded with ``stages.rl.load_policy``
     snapshots/          policies at evenly spaced points of training + index.json (timesteps, wall s)
     reward_heads.pt     fitted embedding / proxy heads (when fitted)
+    guard.pt            the guard's done-classifier ensemble (``guard``; with ``guard_replay_rounds``
+                        the last refit's, ``stages.rl.guard_refit``)
     episodes.json       every training episode: return, length, terminated by done head or truncated
     training.png        episode return over env steps
     tensorboard/        episode return / length and PPO update statistics, live (``stages.common.curves``)
@@ -30,7 +32,8 @@ Outputs:
                         the done head fired and whether the simulator agreed (``stages.rl.imagined``)
     metrics.json        PPO summary, env steps/s, policy parameter change from SFT, diagnostics
                         (mean Spearman correlation of reward with progress per module and split),
-                        imagined-success precision per split with its Wilson interval
+                        imagined-success precision per split with its Wilson interval; with
+                        ``guard_replay_rounds``, each refit's replayed precision (``guard/replay/...``)
 
 Key includes:
     this config (reward module and its weights, PPO hyper-parameters, seed) and the keys of
@@ -76,6 +79,10 @@ class Config(BaseModel):
     guard_heads: int = Field(5, ge=2, description="classifiers in the ensemble")
     guard_coef: float = Field(1.0, ge=0, description="penalty per step = guard_coef * max_step_reward * std of their probabilities")
     guard_steps: int = Field(500, ge=1, description="optimisation steps of the ensemble")
+    guard_replay_rounds: int = Field(0, ge=0, description="times during PPO the guard is refitted on the current "
+                                     "policy's imagined episodes, labelled by replaying them in ManiSkill "
+                                     "(stages/rl/guard_refit.py; needs guard); 0 = never")
+    guard_replay_envs: int = Field(64, ge=1, description="IND training environments imagined and replayed per refit")
     # environment
     theta_done: float = Field(0.5, gt=0, lt=1, description="done-head threshold that terminates a WM episode")
     max_episode_steps: int = Field(75, ge=1, description="truncation horizon in world-model steps (= policy steps; "
@@ -121,6 +128,13 @@ class Config(BaseModel):
     head_lr: float = Field(1e-3, gt=0)
     diagnostics_episodes: int = Field(16, ge=1, description="held-out successful episodes per split for diagnostics")
     diagnostics: Literal["all", "selected"] = Field("all", description="diagnose every reward module or only the selected one")
+
+    @model_validator(mode="after")
+    def _guard_replay_needs_guard(self) -> "Config":
+        if self.guard_replay_rounds and not self.guard:
+            raise ValueError(f"guard_replay_rounds={self.guard_replay_rounds} refits the guard, but guard is false: "
+                             "set rl.guard=true as well")
+        return self
 
     @model_validator(mode="after")
     def _return_scales(self) -> "Config":

@@ -25,6 +25,7 @@ from stages.common.proprio import POSITION_SCALE
 from stages.evaluate.stats import wilson
 
 STRICTER_THETAS = (0.7, 0.9, 0.97)  # done-head thresholds the rl stage also reports precision at
+PERSIST_STEPS = (3,)  # and "done" held for this many consecutive imagined steps at the stage's threshold
 TCP_ERROR_STEPS = (5, 10, 20)  # policy steps after which the rl stage reports the imagined TCP's error
 
 
@@ -56,9 +57,10 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     """Imagine ``steps`` policy steps from each spec's simulator start, replay them in ``sim``.
 
     sim: a ``SimTaskEnv`` whose ``action_repeat`` is the world model's frame skip.
-    record: if given, filled with ``tokens`` (N, T+1, h, w), the imagined frames' tokens, and
-    ``frames``, per environment the replay's third-view frames (H, W, 3) uint8 at steps 0, 1, ...
-    (until it ended), for looking at the two side by side.
+    record: if given, filled with ``tokens`` (N, T+1, h, w), the imagined frames' tokens, ``hidden``
+    (N, T, D), their pooled head features (what the done head and the guard read), and ``frames``,
+    per environment the replay's third-view frames (H, W, 3) uint8 at steps 0, 1, ... (until it
+    ended), for looking at the two side by side.
     """
     from stages.sft.policy import act
 
@@ -92,10 +94,12 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
         tcp[:, t] = proprio.numpy()[:, :3]
         if record is not None:
             record.setdefault("tokens", [tokens]).append(out.tokens.cpu().long())
+            record.setdefault("hidden", []).append(out.hidden.float().cpu())
         obs = obs_fn.from_tokens(out.tokens, proprio.numpy(), instructions)
 
     if record is not None:
         record["tokens"] = torch.stack(record["tokens"], 1)  # (N, T+1, h, w)
+        record["hidden"] = torch.stack(record["hidden"], 1)  # (N, T, D) the imagined frames' pooled head features
         record["frames"] = []
         sim.keep_frames = True
     out_rows = []
@@ -120,15 +124,23 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     return out_rows
 
 
-def _first_at_least(probs: np.ndarray, theta: float) -> int:
-    hit = np.nonzero(probs >= theta)[0]
-    return int(hit[0]) + 1 if len(hit) else -1
+def _first_at_least(probs: np.ndarray, theta: float, persist: int = 1) -> int:
+    """First step (1-based) ending a run of ``persist`` consecutive probabilities >= theta, -1 if none."""
+    above = np.asarray(probs) >= theta
+    run = 0
+    for t, a in enumerate(above):
+        run = run + 1 if a else 0
+        if run >= persist:
+            return t + 1
+    return -1
 
 
-def replay_row(env_id: str, probs: np.ndarray, first_success: int, theta: float, tcp_error: tuple = ()) -> Replay:
+def replay_row(env_id: str, probs: np.ndarray, first_success: int, theta: float, tcp_error: tuple = (),
+               persist: int = 1) -> Replay:
     """One environment's row from a success probability after each imagined step (the done head's, or
-    any other read on the same imagined frames) and the replay's first simulator success."""
-    done_at = _first_at_least(probs, theta)
+    any other read on the same imagined frames) and the replay's first simulator success; with
+    ``persist`` > 1 the imagined success needs that many consecutive steps at or above ``theta``."""
+    done_at = _first_at_least(probs, theta, persist)
     success = first_success > 0 and (done_at < 0 or first_success <= done_at)
     return Replay(env_id, done_at, success, first_success, tuple(round(float(p), 4) for p in probs), tcp_error)
 
@@ -143,10 +155,11 @@ def tcp_error_at(rows: list[Replay], steps: tuple[int, ...]) -> dict[int, float 
     return out
 
 
-def precision_at(rows: list[Replay], theta: float) -> dict:
-    """``precision_metrics`` had the done head's threshold been ``theta`` (from the recorded probabilities)."""
-    return precision_metrics([replay_row(r.env_id, np.asarray(r.done_probs), r.first_success, theta, r.tcp_error)
-                              for r in rows])
+def precision_at(rows: list[Replay], theta: float, persist: int = 1) -> dict:
+    """``precision_metrics`` had the done head's threshold been ``theta``, held for ``persist`` steps
+    (from the recorded probabilities)."""
+    return precision_metrics([replay_row(r.env_id, np.asarray(r.done_probs), r.first_success, theta, r.tcp_error,
+                                         persist) for r in rows])
 
 
 def precision_metrics(rows: list[Replay]) -> dict:

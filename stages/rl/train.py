@@ -72,6 +72,7 @@ def train(ctx, cfg, inp) -> dict:
                                    theta_done=cfg.theta_done, seed=cfg.seed, device=inp.device,
                                    payout_gamma=payout_gamma, guard=guard, dtype=cfg.wm_dtype)
     env = normalized_rewards(raw_env, cfg)
+    refit = _guard_refit(ctx, cfg, inp, envs, raw_env, fs_fit) if guard is not None and cfg.guard_replay_rounds else None
 
     # ---- PPO from the SFT policy -------------------------------------------------------------------
     model = make_ppo(env, cfg, inp.sft_policy, inp.sft_info, inp.device)
@@ -82,6 +83,8 @@ def train(ctx, cfg, inp) -> dict:
         log = TrainingLog(ctx.out, cfg.total_timesteps, cfg.snapshots, progress=bar, curves=curves)
         model.curves = curves
         callbacks = [log] if model.self_imitation is None else [log, SelfImitationRecorder(model.self_imitation)]
+        if refit is not None:
+            callbacks.append(refit)
         model.learn(total_timesteps=cfg.total_timesteps, callback=callbacks)
         model.curves = None
     seconds = time.perf_counter() - t0
@@ -100,6 +103,9 @@ def train(ctx, cfg, inp) -> dict:
     })
     if model.self_imitation is not None:
         metrics.update({f"self_imitation/{k}": v for k, v in model.self_imitation.last_stats.items()})
+    if refit is not None:
+        metrics.update(refit.metrics())
+        torch.save(raw_env.guard.ensemble.state_dict(), ctx.out / "guard.pt")  # the last refit's ensemble
     if isinstance(raw_env, WorldModelVecEnv):
         metrics["ppo/clipped_action_entries"] = int(raw_env.roll.clip_count)
         metrics["ppo/wm_dtype"] = raw_env.dtype  # what "auto" resolved to on this machine
@@ -110,25 +116,56 @@ def train(ctx, cfg, inp) -> dict:
     return metrics
 
 
-def _imagined_precision(ctx, cfg, inp, policy) -> dict:
-    """The final policy imagines episodes from fresh simulator starts; ManiSkill replays them."""
+def _replay_sim(ctx, cfg, inp, picked: list):
+    """(ManiSkill env over the picked environments, rendering and controlling as collect did, their specs)."""
     from stages.collect.catalog import read_scenes_json
     from stages.collect.dataset import read_sim_facts
-    from stages.rl.imagined import (STRICTER_THETAS, TCP_ERROR_STEPS, imagine_and_replay, pick_environments,
-                                    precision_at, precision_metrics, tcp_error_at)
     from stages.rl.sim_env import SimSpec, SimTaskEnv
 
     scenes = read_scenes_json(ctx.input("collect") / "scenes.json")
     facts = read_sim_facts(ctx.input("collect"))
+    specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction) for e in picked]
+    sim = SimTaskEnv(specs, inp.obs_fn, max_steps=cfg.max_episode_steps, action_repeat=inp.frame_skip,
+                     image_size=facts.image_size, robot_mesh=facts.robot_mesh, seed=cfg.seed)
+    return sim, specs
+
+
+def _guard_refit(ctx, cfg, inp, envs: list, raw_env, fs_fit):
+    """The callback that refits the guard on replayed imagined episodes of IND training environments."""
+    from stages.rl.guard_refit import SEED_BASE, GuardRefit
+    from stages.rl.imagined import imagine_and_replay, pick_environments
+
+    picked = pick_environments(envs, cfg.guard_replay_envs)
+
+    def imagine(policy, k: int):
+        policy.set_training_mode(False)  # PPO's next update switches it back
+        sim, specs = _replay_sim(ctx, cfg, inp, picked)
+        seeds = [SEED_BASE + 100_000 * cfg.seed + 1000 * k + i for i in range(len(specs))]
+        record: dict = {}
+        try:
+            rows = imagine_and_replay(policy, inp.wm, inp.tok, inp.obs_fn, sim, specs, seeds, cfg.max_episode_steps,
+                                      cfg.theta_done, record=record)
+        finally:
+            sim.close()
+        return rows, record["hidden"]
+
+    return GuardRefit(raw_env, imagine, fs_fit.hidden, fs_fit.success, total_timesteps=cfg.total_timesteps,
+                      rounds=cfg.guard_replay_rounds, heads=cfg.guard_heads, steps=cfg.guard_steps, lr=cfg.head_lr,
+                      seed=cfg.seed, coef=cfg.guard_coef, theta=cfg.theta_done, log=ctx.log)
+
+
+def _imagined_precision(ctx, cfg, inp, policy) -> dict:
+    """The final policy imagines episodes from fresh simulator starts; ManiSkill replays them."""
+    from stages.rl.imagined import (PERSIST_STEPS, STRICTER_THETAS, TCP_ERROR_STEPS, imagine_and_replay,
+                                    pick_environments, precision_at, precision_metrics, tcp_error_at)
+
     policy.set_training_mode(False)
     out, table = {}, {}
     for split in ("ind", "ood"):
         picked = pick_environments([e for e in inp.envs if e.split == split and e.task in inp.tasks], cfg.precision_envs)
         if not picked:
             continue
-        specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction) for e in picked]
-        sim = SimTaskEnv(specs, inp.obs_fn, max_steps=cfg.max_episode_steps, action_repeat=inp.frame_skip,
-                         image_size=facts.image_size, robot_mesh=facts.robot_mesh, seed=cfg.seed)
+        sim, specs = _replay_sim(ctx, cfg, inp, picked)
         seeds = [3_000_000 + 1000 * cfg.seed + i for i in range(len(specs))]  # apart from training and evaluation
         try:
             with ctx.progress(len(specs), f"rl: imagined vs replayed ({split})", unit="env") as bar:
@@ -143,6 +180,10 @@ def _imagined_precision(ctx, cfg, inp, policy) -> dict:
             m = precision_at(rows, theta)
             out[f"imagined/{split}/imagined_done_at_{theta:g}"] = m["imagined_done"]
             out[f"imagined/{split}/precision_at_{theta:g}"] = m["precision"]
+        for k in PERSIST_STEPS:  # what a success held for k imagined steps would give
+            m = precision_at(rows, cfg.theta_done, persist=k)
+            out[f"imagined/{split}/imagined_done_persist_{k}"] = m["imagined_done"]
+            out[f"imagined/{split}/precision_persist_{k}"] = m["precision"]
         for k, err in tcp_error_at(rows, TCP_ERROR_STEPS).items():  # the arm's fidelity under the policy's actions
             out[f"imagined/{split}/tcp_error_cm_at_{k}"] = None if err is None else 100 * err
     (ctx.out / "imagined.json").write_text(json.dumps(table, indent=1) + "\n")

@@ -164,3 +164,13 @@ def test_reward_sweep_reuses_the_shared_stages(store):
 def test_changing_an_rl_setting_does_not_rerun_sft(store):
     acts = actions(cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.gamma=0.98"))
     assert acts[("sft", "cached")] == 1 and acts[("sft", "ran")] == 0 and acts[("rl", "ran")] == 1
+
+
+def test_the_guard_refits_on_replayed_imagined_episodes(store):
+    cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.guard=true", "--set", "rl.guard_replay_rounds=1",
+        "--set", "rl.guard_replay_envs=2")
+    rl = artifact(store, "rl")
+    m = json.loads((rl / "metrics.json").read_text())
+    assert m["guard/replay/rounds_done"] == 1 and m["guard/replay/round1/environments"] == 2
+    assert m["guard/replay/frames"] > 0 and m["guard/replay/sim_policy_steps"] == m["guard/replay/frames"]
+    assert (rl / "guard.pt").is_file()

@@ -36,3 +36,11 @@ def test_tcp_error_averages_only_over_replays_that_lasted():
     assert errs[1] == pytest.approx(0.03)  # both replays reached step 1
     assert errs[3] == pytest.approx(0.03)  # only "a" reached step 3
     assert errs[4] is None  # no replay lasted 4 steps
+
+
+def test_a_done_that_must_persist_drops_a_one_step_blip():
+    rows = [replay_row("pull/a", np.array([0.2, 0.9, 0.1, 0.1, 0.1]), -1, 0.5),  # one-step blip, never real
+            replay_row("push/b", np.array([0.3, 0.8, 0.9, 0.95, 0.9]), 4, 0.5)]  # held from step 2, real at 4
+    assert precision_at(rows, 0.5)["imagined_and_replayed"] == 0  # both fire at step 2, neither real by then
+    held = precision_at(rows, 0.5, persist=3)
+    assert (held["imagined_done"], held["imagined_and_replayed"]) == (1, 1)  # b's run of 3 ends at step 4
