@@ -11,8 +11,9 @@ steps are negatives). The ensemble is refitted on the recorded frames plus all r
 far and replaces the environment's guard, so a success needs its confirmation from then on.
 
 Cost in simulator steps: ``rounds * envs * max_episode_steps`` policy steps at most (each
-``frame_skip`` control steps), reported as ``guard/replay/sim_policy_steps``. Evaluation and the
-stage's own precision metric use other seeds (``SEED_BASE``) and, for the metric, also OOD scenes.
+``frame_skip`` control steps), reported as ``guard/replay/sim_policy_steps``. The replays' seeds
+start at ``SEED_BASE``, apart from the precision metric's (which also covers OOD scenes) and
+evaluation's.
 """
 from __future__ import annotations
 
