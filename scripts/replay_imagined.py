@@ -35,12 +35,15 @@ def main() -> None:
                     help="write a frame strip: per environment with an imagined done, the imagined frames over the replayed ones")
     ap.add_argument("--every", type=int, default=4, help="strip: one frame every this many policy steps")
     ap.add_argument("--strip-rows", type=int, default=6, help="strip: environments shown (those with an imagined done first)")
+    ap.add_argument("--guard", action="store_true",
+                    help="apply the rl artifact's guard.pt (rl.guard): an imagined success then needs its confirmation, "
+                         "as in the guarded env; the done head alone is printed beside it")
     add_decoding_options(ap)
     ap.add_argument("--seed", type=int, default=2_000_000)
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-    from stages.rl.imagined import TCP_ERROR_STEPS, imagine_and_replay, precision_at, tcp_error_at
+    from stages.rl.imagined import TCP_ERROR_STEPS, imagine_and_replay, precision_at, precision_head_only, tcp_error_at
     from stages.sft.policy import POLICY_FILE
 
     path = {"ppo": args.rl / "policy.zip", "sft": args.sft / POLICY_FILE}.get(args.policy, args.rl / args.policy)
@@ -48,9 +51,10 @@ def main() -> None:
                    steps=args.steps, decode_steps=args.decode_steps, temperature=args.temperature)
     tok, obs_fn, wm, policy, specs, sim = c.tok, c.obs_fn, c.wm, c.policy, c.specs, c.sim
     record = {} if args.strip else None
+    guard = load_guard(args.rl / "guard.pt", args.theta) if args.guard else None
     try:
         rows = imagine_and_replay(policy, wm, tok, obs_fn, sim, specs, [args.seed + i for i in range(len(specs))],
-                                  args.steps, args.theta, record=record)
+                                  args.steps, args.theta, record=record, guard=guard)
     finally:
         sim.close()
     if args.strip:
@@ -63,12 +67,30 @@ def main() -> None:
         if m["precision"] is not None:
             line += f", precision {m['precision']:.2f} [{m['precision_lo']:.2f}, {m['precision_hi']:.2f}]"
         print(line)
+    if guard is not None:
+        m = precision_head_only(rows, args.theta)
+        print(f"  the done head alone (no guard veto): imagined done {m['imagined_done']}, both {m['imagined_and_replayed']}"
+              + (f", precision {m['precision']:.2f} [{m['precision_lo']:.2f}, {m['precision_hi']:.2f}]"
+                 if m["precision"] is not None else ""))
     errs = tcp_error_at(rows, TCP_ERROR_STEPS)
     print("  imagined vs replayed TCP (same actions), mean over environments: "
           + ", ".join(f"{100 * e:.1f} cm after {k}" if e is not None else f"- after {k}" for k, e in errs.items()))
     for r in rows:
         print(f"    {r.env_id:55s} done_at {r.done_at:3d}  peak p {max(r.done_probs):.3f}  replay success {r.success}"
               f" (first at {r.first_success})")
+
+
+def load_guard(path: Path, theta: float):
+    """The guard an rl artifact saved (``guard.pt``: the ensemble's state dict), as the env applies it."""
+    from stages.rl.guard import DoneEnsemble, Guard
+
+    if not path.is_file():
+        raise SystemExit(f"{path} is missing: was the rl artifact trained with rl.guard=true?")
+    state = torch.load(path, map_location="cpu")
+    heads = len({k.split(".")[1] for k in state if k.startswith("heads.")})
+    ensemble = DoneEnsemble(state["heads.0.0.weight"].shape[0], heads)  # heads.<k>.0 is each head's LayerNorm(dim)
+    ensemble.load_state_dict(state)
+    return Guard(ensemble.eval(), coef=0.0, theta=theta)  # only the confirmation is read here
 
 
 def write_strip(rows, record: dict, tok, path: Path, every: int, max_envs: int) -> None:

@@ -13,6 +13,12 @@ replayed actions first succeed over the whole horizon, so precision at any stric
 (``precision_at``) comes from the same rollouts. ``tcp_error`` is the world model's arm fidelity
 under the policy's own actions: after each replayed step, the distance between the TCP position the
 world model predicted (its proprioception head) and the simulator's, for the same action sequence.
+
+With a ``guard`` (``stages.rl.guard``), an imagined success is what the guarded environment counts
+as one: the done head *and* the guard ensemble's mean probability at or above the threshold at the
+same step, i.e. the smaller of the two probabilities is the step's success probability
+(``done_probs``); the done head's own probabilities are kept as ``head_probs`` so precision without
+the guard's veto comes from the same rollouts.
 """
 from __future__ import annotations
 
@@ -37,6 +43,7 @@ class Replay:
     first_success: int = -1  # policy step of the replay's first simulator success over the horizon, -1 if never
     done_probs: tuple = ()  # the done head's probability after each imagined policy step
     tcp_error: tuple = ()  # metres between imagined and replayed TCP after each step (until the replay ends)
+    head_probs: tuple = ()  # with a guard: the done head's own probability after each step (done_probs is min(head, guard))
 
 
 def pick_environments(envs: list, n: int) -> list:
@@ -53,7 +60,7 @@ def pick_environments(envs: list, n: int) -> list:
 
 @torch.no_grad()
 def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[int], steps: int,
-                       theta: float, record: dict | None = None) -> list[Replay]:
+                       theta: float, record: dict | None = None, guard=None) -> list[Replay]:
     """Imagine ``steps`` policy steps from each spec's simulator start, replay them in ``sim``.
 
     sim: a ``SimTaskEnv`` whose ``action_repeat`` is the world model's frame skip.
@@ -61,6 +68,8 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     (N, T, D), their pooled head features (what the done head and the guard read), and ``frames``,
     per environment the replay's third-view frames (H, W, 3) uint8 at steps 0, 1, ... (until it
     ended), for looking at the two side by side.
+    guard: a ``stages.rl.guard.Guard`` the environment applies; an imagined success then needs its
+    confirmation too (see the module docstring).
     """
     from stages.sft.policy import act
 
@@ -81,6 +90,7 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     obs = obs_fn.from_tokens(tokens, proprio.numpy(), instructions)
     actions = np.zeros((n, steps, 7), np.float32)
     probs = np.zeros((n, steps), np.float32)  # (N, T) done head after each step
+    confirm = np.ones((n, steps), np.float32)  # (N, T) the guard ensemble's mean probability (1 without a guard)
     has_head = getattr(wm, "proprio_head", None) is not None  # without one the arm is not predicted: no tcp_error
     tcp = np.zeros((n, steps, 3), np.float32)  # (N, T, 3) imagined TCP position after each step
     for t in range(steps):  # the whole horizon, so stricter thresholds can be read off later
@@ -91,6 +101,8 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
         if has_head:
             proprio = wm.next_proprio(proprio, a, out.tokens)
         probs[:, t] = out.done_prob.cpu().numpy()
+        if guard is not None:
+            confirm[:, t] = guard.ensemble.probs(out.hidden).mean(0).cpu().numpy()  # (K, N) -> (N,)
         tcp[:, t] = proprio.numpy()[:, :3]
         if record is not None:
             record.setdefault("tokens", [tokens]).append(out.tokens.cpu().long())
@@ -119,7 +131,9 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
                 break
             if trunc:
                 break
-        out_rows.append(replay_row(spec.key, probs[i], first_success, theta, tuple(round(e, 4) for e in err)))
+        err = tuple(round(e, 4) for e in err)
+        out_rows.append(replay_row(spec.key, probs[i], first_success, theta, err) if guard is None
+                        else guarded_row(spec.key, probs[i], confirm[i], first_success, theta, err))
     sim.keep_frames = False
     return out_rows
 
@@ -145,6 +159,15 @@ def replay_row(env_id: str, probs: np.ndarray, first_success: int, theta: float,
     return Replay(env_id, done_at, success, first_success, tuple(round(float(p), 4) for p in probs), tcp_error)
 
 
+def guarded_row(env_id: str, head: np.ndarray, confirm: np.ndarray, first_success: int, theta: float,
+                tcp_error: tuple = ()) -> Replay:
+    """A row as the guarded environment counts success: the done head (T,) and the guard ensemble's mean
+    probability (T,) both at or above ``theta`` at the same step; the head's own probabilities kept."""
+    row = replay_row(env_id, np.minimum(head, confirm), first_success, theta, tcp_error)
+    row.head_probs = tuple(round(float(p), 4) for p in head)
+    return row
+
+
 def tcp_error_at(rows: list[Replay], steps: tuple[int, ...]) -> dict[int, float | None]:
     """Mean imagined-vs-replayed TCP distance (metres) after each of ``steps`` policy steps, over the
     rows whose replay lasted that long (None where none did)."""
@@ -160,6 +183,13 @@ def precision_at(rows: list[Replay], theta: float, persist: int = 1) -> dict:
     (from the recorded probabilities)."""
     return precision_metrics([replay_row(r.env_id, np.asarray(r.done_probs), r.first_success, theta, r.tcp_error,
                                          persist) for r in rows])
+
+
+def precision_head_only(rows: list[Replay], theta: float) -> dict:
+    """``precision_metrics`` from the done head alone, without the guard's veto (rows imagined with a guard)."""
+    if any(not r.head_probs for r in rows):
+        raise ValueError("precision_head_only needs rows imagined with a guard (their head_probs are empty)")
+    return precision_metrics([replay_row(r.env_id, np.asarray(r.head_probs), r.first_success, theta) for r in rows])
 
 
 def precision_metrics(rows: list[Replay]) -> dict:

@@ -111,7 +111,7 @@ def train(ctx, cfg, inp) -> dict:
         metrics["ppo/wm_dtype"] = raw_env.dtype  # what "auto" resolved to on this machine
     ctx.log.info("rl: %s", {k: v for k, v in metrics.items() if k.startswith("ppo/")})
     if cfg.precision_envs:
-        metrics.update(_imagined_precision(ctx, cfg, inp, model.policy))
+        metrics.update(_imagined_precision(ctx, cfg, inp, model.policy, getattr(raw_env, "guard", None)))
     metrics["stage_seconds"] = time.perf_counter() - t_stage
     return metrics
 
@@ -144,7 +144,7 @@ def _guard_refit(ctx, cfg, inp, envs: list, raw_env, fs_fit):
         record: dict = {}
         try:
             rows = imagine_and_replay(policy, inp.wm, inp.tok, inp.obs_fn, sim, specs, seeds, cfg.max_episode_steps,
-                                      cfg.theta_done, record=record)
+                                      cfg.theta_done, record=record, guard=raw_env.guard)  # the guard in place now
         finally:
             sim.close()
         return rows, record["hidden"]
@@ -154,10 +154,13 @@ def _guard_refit(ctx, cfg, inp, envs: list, raw_env, fs_fit):
                       seed=cfg.seed, coef=cfg.guard_coef, theta=cfg.theta_done, log=ctx.log)
 
 
-def _imagined_precision(ctx, cfg, inp, policy) -> dict:
-    """The final policy imagines episodes from fresh simulator starts; ManiSkill replays them."""
+def _imagined_precision(ctx, cfg, inp, policy, guard=None) -> dict:
+    """The final policy imagines episodes from fresh simulator starts; ManiSkill replays them. With the
+    env's ``guard`` an imagined success needs its confirmation, as in training; the done head alone is
+    reported beside it (``imagined/<split>/head_only/...``)."""
     from stages.rl.imagined import (PERSIST_STEPS, STRICTER_THETAS, TCP_ERROR_STEPS, imagine_and_replay,
-                                    pick_environments, precision_at, precision_metrics, tcp_error_at)
+                                    pick_environments, precision_at, precision_head_only, precision_metrics,
+                                    tcp_error_at)
 
     policy.set_training_mode(False)
     out, table = {}, {}
@@ -170,12 +173,14 @@ def _imagined_precision(ctx, cfg, inp, policy) -> dict:
         try:
             with ctx.progress(len(specs), f"rl: imagined vs replayed ({split})", unit="env") as bar:
                 rows = imagine_and_replay(policy, inp.wm, inp.tok, inp.obs_fn, sim, specs, seeds,
-                                          cfg.max_episode_steps, cfg.theta_done)
+                                          cfg.max_episode_steps, cfg.theta_done, guard=guard)
                 bar.update(len(specs))
         finally:
             sim.close()
         table[split] = [vars(r) for r in rows]
         out.update({f"imagined/{split}/{k}": v for k, v in precision_metrics(rows).items()})
+        if guard is not None:  # what the done head alone would have counted
+            out.update({f"imagined/{split}/head_only/{k}": v for k, v in precision_head_only(rows, cfg.theta_done).items()})
         for theta in (t for t in STRICTER_THETAS if t > cfg.theta_done):  # what a stricter done threshold would give
             m = precision_at(rows, theta)
             out[f"imagined/{split}/imagined_done_at_{theta:g}"] = m["imagined_done"]

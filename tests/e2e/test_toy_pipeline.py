@@ -174,3 +174,5 @@ def test_the_guard_refits_on_replayed_imagined_episodes(store):
     assert m["guard/replay/rounds_done"] == 1 and m["guard/replay/round1/environments"] == 2
     assert m["guard/replay/frames"] > 0 and m["guard/replay/sim_policy_steps"] == m["guard/replay/frames"]
     assert (rl / "guard.pt").is_file()
+    for split in ("ind", "ood"):  # precision counts what the guarded env counts: the guard can only veto
+        assert m[f"imagined/{split}/imagined_done"] <= m[f"imagined/{split}/head_only/imagined_done"]

@@ -58,3 +58,23 @@ def test_guard_replay_needs_the_guard():
     with pytest.raises(ValueError, match="set rl.guard=true"):
         Config(guard_replay_rounds=1)
     assert Config(guard=True, guard_replay_rounds=1).guard_replay_envs == 64
+
+
+def test_replay_imagined_loads_the_guard_an_rl_artifact_saved(tmp_path):
+    import sys
+    from pathlib import Path
+
+    from stages.rl.guard import DoneEnsemble
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+    from replay_imagined import load_guard
+
+    torch.manual_seed(0)
+    saved = DoneEnsemble(12, 3).eval()
+    torch.save(saved.state_dict(), tmp_path / "guard.pt")  # what the rl stage writes
+    guard = load_guard(tmp_path / "guard.pt", theta=0.5)
+    h = torch.randn(7, 12)
+    assert torch.allclose(guard.ensemble.probs(h), saved.probs(h))
+    assert guard(h)[1].tolist() == (saved.probs(h).mean(0) >= 0.5).tolist()
+    with pytest.raises(SystemExit, match="rl.guard=true"):
+        load_guard(tmp_path / "missing.pt", theta=0.5)

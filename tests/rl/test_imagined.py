@@ -44,3 +44,18 @@ def test_a_done_that_must_persist_drops_a_one_step_blip():
     assert precision_at(rows, 0.5)["imagined_and_replayed"] == 0  # both fire at step 2, neither real by then
     held = precision_at(rows, 0.5, persist=3)
     assert (held["imagined_done"], held["imagined_and_replayed"]) == (1, 1)  # b's run of 3 ends at step 4
+
+
+def test_the_guard_vetoes_an_imagined_success_it_does_not_confirm():
+    from stages.rl.imagined import guarded_row, precision_head_only
+
+    head = np.array([0.2, 0.9, 0.95, 0.95])
+    rows = [guarded_row("pull/a", head, np.array([0.1, 0.2, 0.3, 0.2]), -1, 0.5),  # the guard never confirms
+            guarded_row("push/b", head, np.array([0.1, 0.3, 0.8, 0.9]), 3, 0.5)]  # confirmed at 3, real at 3
+    assert [r.done_at for r in rows] == [-1, 3]
+    guarded = precision_metrics(rows)
+    assert (guarded["imagined_done"], guarded["imagined_and_replayed"], guarded["precision"]) == (1, 1, 1.0)
+    alone = precision_head_only(rows, 0.5)  # the done head alone fires at step 2 in both, neither real by then
+    assert (alone["imagined_done"], alone["imagined_and_replayed"], alone["precision"]) == (2, 0, 0.0)
+    with pytest.raises(ValueError, match="head_probs"):
+        precision_head_only([replay_row("a", head, -1, 0.5)], 0.5)
