@@ -41,7 +41,7 @@ class Replay:
     done_at: int  # policy step at which the done head first reached theta, -1 if never
     success: bool  # the replayed actions succeeded in the simulator (by done_at, or the horizon)
     first_success: int = -1  # policy step of the replay's first simulator success over the horizon, -1 if never
-    done_probs: tuple = ()  # the done head's probability after each imagined policy step
+    done_probs: tuple = ()  # success probability after each imagined step: the done head's (with a guard: min(head, guard))
     tcp_error: tuple = ()  # metres between imagined and replayed TCP after each step (until the replay ends)
     head_probs: tuple = ()  # with a guard: the done head's own probability after each step (done_probs is min(head, guard))
 
