@@ -43,7 +43,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-    from stages.rl.imagined import TCP_ERROR_STEPS, imagine_and_replay, precision_at, precision_head_only, tcp_error_at
+    from stages.rl.imagined import (TCP_ERROR_STEPS, imagine_and_replay, precision_at, precision_head_only, tcp_error_at,
+                                    token_accuracy_at)
     from stages.sft.policy import POLICY_FILE
 
     path = {"ppo": args.rl / "policy.zip", "sft": args.sft / POLICY_FILE}.get(args.policy, args.rl / args.policy)
@@ -75,6 +76,9 @@ def main() -> None:
     errs = tcp_error_at(rows, TCP_ERROR_STEPS)
     print("  imagined vs replayed TCP (same actions), mean over environments: "
           + ", ".join(f"{100 * e:.1f} cm after {k}" if e is not None else f"- after {k}" for k, e in errs.items()))
+    accs = token_accuracy_at(rows, TCP_ERROR_STEPS)
+    print("  tokens of the imagined frame equal to the replayed frame's (the first frame's in brackets): "
+          + ", ".join(f"{a[0]:.3f} ({a[1]:.3f}) after {k}" if a is not None else f"- after {k}" for k, a in accs.items()))
     for r in rows:
         print(f"    {r.env_id:55s} done_at {r.done_at:3d}  peak p {max(r.done_probs):.3f}  replay success {r.success}"
               f" (first at {r.first_success})")

@@ -13,6 +13,11 @@ replayed actions first succeed over the whole horizon, so precision at any stric
 (``precision_at``) comes from the same rollouts. ``tcp_error`` is the world model's arm fidelity
 under the policy's own actions: after each replayed step, the distance between the TCP position the
 world model predicted (its proprioception head) and the simulator's, for the same action sequence.
+``token_accuracy`` is the same for the frames: the fraction of the imagined frame's tokens equal to
+those of the replayed frame (the simulator's views through the tokenizer, as the policy sees them),
+and ``copy_accuracy`` the fraction of the *first* frame's tokens equal to the replayed frame's: a
+world model that imagined nothing at all (a still scene) scores it, so the frames' fidelity is the
+gap between the two.
 
 With a ``guard`` (``stages.rl.guard``), an imagined success is what the guarded environment counts
 as one: the done head *and* the guard ensemble's mean probability at or above the threshold at the
@@ -44,6 +49,8 @@ class Replay:
     done_probs: tuple = ()  # success probability after each imagined step: the done head's (with a guard: min(head, guard))
     tcp_error: tuple = ()  # metres between imagined and replayed TCP after each step (until the replay ends)
     head_probs: tuple = ()  # with a guard: the done head's own probability after each step (done_probs is min(head, guard))
+    token_accuracy: tuple = ()  # fraction of imagined tokens equal to the replayed frame's after each step (until it ends)
+    copy_accuracy: tuple = ()  # the same for the first frame's tokens: what imagining a still scene would score
 
 
 def pick_environments(envs: list, n: int) -> list:
@@ -93,6 +100,8 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     confirm = np.ones((n, steps), np.float32)  # (N, T) the guard ensemble's mean probability (1 without a guard)
     has_head = getattr(wm, "proprio_head", None) is not None  # without one the arm is not predicted: no tcp_error
     tcp = np.zeros((n, steps, 3), np.float32)  # (N, T, 3) imagined TCP position after each step
+    first_codes = obs["codes"] > 0  # (N, C, h, w) bool: the first frame's tokens as code bits
+    codes = np.zeros((n, steps) + first_codes.shape[1:], bool)  # (N, T, C, h, w) the imagined frames' bits
     for t in range(steps):  # the whole horizon, so stricter thresholds can be read off later
         a = torch.as_tensor(act(policy, obs, deterministic=True))
         a = torch.minimum(torch.maximum(a, wm.net.action_low), wm.net.action_high)  # what the WM sees (it clips)
@@ -108,6 +117,7 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
             record.setdefault("tokens", [tokens]).append(out.tokens.cpu().long())
             record.setdefault("hidden", []).append(out.hidden.float().cpu())
         obs = obs_fn.from_tokens(out.tokens, proprio.numpy(), instructions)
+        codes[:, t] = obs["codes"] > 0
 
     if record is not None:
         record["tokens"] = torch.stack(record["tokens"], 1)  # (N, T+1, h, w)
@@ -119,23 +129,33 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
         sim.reset(seed=seed, options={"spec": spec})
         if record is not None:
             record["frames"].append([sim.frames[0][0]])
-        first_success, err = -1, []
+        first_success, err, acc, copy = -1, [], [], []
         for t in range(steps):
             real, _, _, trunc, info = sim.step(actions[i, t])
             if record is not None:
                 record["frames"][-1].append(sim.frames[-1][0])
             if has_head:
                 err.append(float(np.linalg.norm(np.asarray(real["proprio"])[:3] - tcp[i, t])) / POSITION_SCALE)  # dm -> m
+            seen = np.asarray(real["codes"]) > 0  # (C, h, w)
+            acc.append(token_match(codes[i, t], seen))
+            copy.append(token_match(first_codes[i], seen))
             if info["success"]:
                 first_success = t + 1
                 break
             if trunc:
                 break
         err = tuple(round(e, 4) for e in err)
-        out_rows.append(replay_row(spec.key, probs[i], first_success, theta, err) if guard is None
-                        else guarded_row(spec.key, probs[i], confirm[i], first_success, theta, err))
+        row = (replay_row(spec.key, probs[i], first_success, theta, err) if guard is None
+               else guarded_row(spec.key, probs[i], confirm[i], first_success, theta, err))
+        row.token_accuracy, row.copy_accuracy = tuple(round(a, 4) for a in acc), tuple(round(c, 4) for c in copy)
+        out_rows.append(row)
     sim.keep_frames = False
     return out_rows
+
+
+def token_match(a: np.ndarray, b: np.ndarray) -> float:
+    """Fraction of grid cells whose code bits all agree. a, b (C, h, w) bool -> float."""
+    return float((a == b).all(0).mean())
 
 
 def _first_at_least(probs: np.ndarray, theta: float, persist: int = 1) -> int:
@@ -175,6 +195,16 @@ def tcp_error_at(rows: list[Replay], steps: tuple[int, ...]) -> dict[int, float 
     for k in steps:
         errs = [r.tcp_error[k - 1] for r in rows if len(r.tcp_error) >= k]
         out[k] = float(np.mean(errs)) if errs else None
+    return out
+
+
+def token_accuracy_at(rows: list[Replay], steps: tuple[int, ...]) -> dict[int, tuple[float, float] | None]:
+    """Mean (imagined, first-frame) token accuracy against the replayed frame after each of ``steps``
+    policy steps, over the rows whose replay lasted that long (None where none did)."""
+    out = {}
+    for k in steps:
+        pairs = [(r.token_accuracy[k - 1], r.copy_accuracy[k - 1]) for r in rows if len(r.token_accuracy) >= k]
+        out[k] = tuple(float(v) for v in np.mean(pairs, 0)) if pairs else None
     return out
 
 

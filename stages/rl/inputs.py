@@ -100,11 +100,26 @@ class RLInputs:
             raise ValueError(f"no in-domain training environments for tasks {tasks}")
         return out
 
-    def starts(self, envs: list[Environment]) -> list[Start]:
-        """Initial states of training episodes of ``envs`` (first frames)."""
+    def starts(self, envs: list[Environment], any_frame: bool = False) -> list[Start]:
+        """States world-model episodes start from: the first frames of the training episodes of ``envs``,
+        or with ``any_frame`` every world-model frame of them before the first successful one."""
         train = set(self.split["train"])
-        return [Start(self.goal_index[e.env_id], e.instruction, self.tokens(i)[0], self.first_proprio(i))
-                for e in envs for i in e.episodes if i in train]
+        ids = [(e, i) for e in envs for i in e.episodes if i in train]
+        if not any_frame:
+            return [Start(self.goal_index[e.env_id], e.instruction, self.tokens(i)[0], self.first_proprio(i))
+                    for e, i in ids]
+        return [s for e, i in ids for s in self._starts_before_success(e, i)]
+
+    def _starts_before_success(self, env: Environment, episode_id: str) -> list[Start]:
+        ep = self.dataset.load_states(episode_id)
+        idx = frame_indices(len(ep["action"]), self.frame_skip)  # (T'+1,) control-step index of each WM frame
+        success = np.asarray(ep["success"], dtype=bool)[idx]  # (T'+1,)
+        end = int(np.argmax(success)) if success.any() else len(idx)  # frames [0, end) are not yet successful
+        if end == 0:
+            return []
+        tokens = self.tokens(episode_id)  # (T'+1, h, w)
+        proprio = proprio_from_state(np.asarray(ep["ee_pose"])[idx[:end]], np.asarray(ep["qpos"])[idx[:end]])  # (end, 10)
+        return [Start(self.goal_index[env.env_id], env.instruction, tokens[j], proprio[j]) for j in range(end)]
 
     def goal_frames(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Decoded goal frames (G, 3, H, W) x 2 in [0, 1], rows as in the goals artifact."""

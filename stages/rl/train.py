@@ -67,8 +67,10 @@ def train(ctx, cfg, inp) -> dict:
     if chosen.env == "sim":
         raw_env = _sim_vec_env(ctx, cfg, inp, envs, payout_gamma)
     else:
+        starts = inp.starts(envs, any_frame=cfg.branch_horizon > 0)
+        metrics["ppo/start_states"] = len(starts)
         raw_env = WorldModelVecEnv(inp.wm, inp.tok, inp.obs_fn, chosen.build(parts, cfg, cfg.num_envs),
-                                   inp.starts(envs), num_envs=cfg.num_envs, max_steps=cfg.max_episode_steps,
+                                   starts, num_envs=cfg.num_envs, max_steps=cfg.branch_horizon or cfg.max_episode_steps,
                                    theta_done=cfg.theta_done, seed=cfg.seed, device=inp.device,
                                    payout_gamma=payout_gamma, guard=guard, dtype=cfg.wm_dtype)
     env = normalized_rewards(raw_env, cfg)
@@ -160,7 +162,7 @@ def _imagined_precision(ctx, cfg, inp, policy, guard=None) -> dict:
     reported beside it (``imagined/<split>/head_only/...``)."""
     from stages.rl.imagined import (PERSIST_STEPS, STRICTER_THETAS, TCP_ERROR_STEPS, imagine_and_replay,
                                     pick_environments, precision_at, precision_head_only, precision_metrics,
-                                    tcp_error_at)
+                                    tcp_error_at, token_accuracy_at)
 
     policy.set_training_mode(False)
     out, table = {}, {}
@@ -191,6 +193,8 @@ def _imagined_precision(ctx, cfg, inp, policy, guard=None) -> dict:
             out[f"imagined/{split}/precision_persist_{k}"] = m["precision"]
         for k, err in tcp_error_at(rows, TCP_ERROR_STEPS).items():  # the arm's fidelity under the policy's actions
             out[f"imagined/{split}/tcp_error_cm_at_{k}"] = None if err is None else 100 * err
+        for k, acc in token_accuracy_at(rows, TCP_ERROR_STEPS).items():  # the frames' fidelity, and a still scene's
+            out[f"imagined/{split}/token_accuracy_at_{k}"], out[f"imagined/{split}/copy_first_accuracy_at_{k}"] = acc or (None, None)
     (ctx.out / "imagined.json").write_text(json.dumps(table, indent=1) + "\n")
     ctx.log.info("rl: imagined-success precision %s", {k: v for k, v in out.items() if k.endswith(("precision", "done"))})
     return out

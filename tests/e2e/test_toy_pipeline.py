@@ -166,6 +166,42 @@ def test_changing_an_rl_setting_does_not_rerun_sft(store):
     assert acts[("sft", "cached")] == 1 and acts[("sft", "ran")] == 0 and acts[("rl", "ran")] == 1
 
 
+def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from stages.common.frame_skip import frame_indices
+    from stages.common.proprio import proprio_from_state
+    from stages.rl import Config
+    from stages.rl.inputs import RLInputs
+
+    ctx = SimpleNamespace(input=lambda name: artifact(store, name), device="cpu")
+    inp = RLInputs.load(ctx, Config())
+    envs = inp.training_envs(inp.tasks)
+    first, every = inp.starts(envs), inp.starts(envs, any_frame=True)
+    assert len(every) > len(first)
+    env = next(e for e in envs if any(inp.meta[i].success and i in inp.split["train"] for i in e.episodes))
+    eid = next(i for i in env.episodes if inp.meta[i].success and i in inp.split["train"])
+    states = inp.dataset.load_states(eid)
+    idx = frame_indices(len(states["action"]), inp.frame_skip)
+    first_success = int(np.argmax(np.asarray(states["success"])[idx]))
+    own = inp._starts_before_success(env, eid)
+    assert len(own) == first_success > 0  # every frame before the first successful one, none after
+    assert np.array_equal(own[0].tokens, inp.tokens(eid)[0]) and np.allclose(own[0].proprio, inp.first_proprio(eid))
+    j = first_success - 1
+    assert np.array_equal(own[j].tokens, inp.tokens(eid)[j])
+    assert np.allclose(own[j].proprio, proprio_from_state(states["ee_pose"][idx[j]], states["qpos"][idx[j]])[0])
+
+    cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.branch_horizon=3")
+    rl = artifact(store, "rl")
+    m = json.loads((rl / "metrics.json").read_text())
+    assert m["ppo/start_states"] == len(every)
+    episodes = json.loads((rl / "episodes.json").read_text())
+    assert episodes and max(e["length"] for e in episodes) <= 3  # the toy profile's horizon is 15
+    assert all(e["length"] == 3 for e in episodes if not e["terminated"])
+
+
 def test_the_guard_refits_on_replayed_imagined_episodes(store):
     cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.guard=true", "--set", "rl.guard_replay_rounds=1",
         "--set", "rl.guard_replay_envs=2")
@@ -176,3 +212,9 @@ def test_the_guard_refits_on_replayed_imagined_episodes(store):
     assert (rl / "guard.pt").is_file()
     for split in ("ind", "ood"):  # precision counts what the guarded env counts: the guard can only veto
         assert m[f"imagined/{split}/imagined_done"] <= m[f"imagined/{split}/head_only/imagined_done"]
+        for k in (5, 10):  # the frames' fidelity under the policy's actions (toy horizon 15), and a still scene's
+            for name in ("token_accuracy", "copy_first_accuracy"):
+                v = m[f"imagined/{split}/{name}_at_{k}"]
+                assert v is None or 0.0 <= v <= 1.0
+        rows = json.loads((rl / "imagined.json").read_text())[split]
+        assert rows and all(1 <= len(r["token_accuracy"]) == len(r["copy_accuracy"]) for r in rows)

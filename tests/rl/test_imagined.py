@@ -38,6 +38,26 @@ def test_tcp_error_averages_only_over_replays_that_lasted():
     assert errs[4] is None  # no replay lasted 4 steps
 
 
+def test_a_token_matches_only_if_all_its_code_bits_do():
+    from stages.rl.imagined import token_match
+
+    a = np.zeros((3, 2, 2), bool)  # 3 code bits on a 2 x 2 grid
+    b = a.copy()
+    b[0, 0, 0] = True  # one bit of one cell differs
+    b[:, 1, 1] = True  # all bits of another
+    assert token_match(a, a) == 1.0 and token_match(a, b) == 0.5
+
+
+def test_token_accuracy_averages_only_over_replays_that_lasted():
+    from stages.rl.imagined import token_accuracy_at
+
+    a, b = replay_row("a", np.zeros(3), -1, 0.5), replay_row("b", np.zeros(3), 1, 0.5)
+    a.token_accuracy, a.copy_accuracy = (0.9, 0.8, 0.7), (0.95, 0.9, 0.85)
+    b.token_accuracy, b.copy_accuracy = (0.5,), (0.7,)
+    acc = token_accuracy_at([a, b], (1, 3, 4))
+    assert acc[1] == pytest.approx((0.7, 0.825)) and acc[3] == pytest.approx((0.7, 0.85)) and acc[4] is None
+
+
 def test_a_done_that_must_persist_drops_a_one_step_blip():
     rows = [replay_row("pull/a", np.array([0.2, 0.9, 0.1, 0.1, 0.1]), -1, 0.5),  # one-step blip, never real
             replay_row("push/b", np.array([0.3, 0.8, 0.9, 0.95, 0.9]), 4, 0.5)]  # held from step 2, real at 4
