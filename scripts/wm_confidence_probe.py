@@ -11,8 +11,12 @@ gives each token of the frame given all the others (one extra head pass per step
     accuracy of the whole frame,
   - the confidence at the imagined-done step of confirmed and of false imagined successes.
 
+With ``--recorded`` it prints the third view's token accuracy for the planner's own actions instead:
+the split's optimal demonstrations (held-out IND, or OOD) rolled from their first frames under their
+recorded actions, against their recorded frames (no simulator, no policy).
+
     PYTHONPATH=. .venv/bin/python scripts/wm_confidence_probe.py <collect> <tokenize> <train_wm> <sft> <rl> \\
-        [--policy ppo|sft] [--envs 48] [--split ind]
+        [--policy ppo|sft] [--envs 48] [--split ind] [--recorded]
 """
 from __future__ import annotations
 
@@ -48,6 +52,40 @@ def spearman(x: np.ndarray, y: np.ndarray) -> float:
     return float(np.corrcoef(rank(x), rank(y))[0, 1])
 
 
+@torch.no_grad()
+def recorded_fidelity(collect, tokenize, train_wm, split: str, episodes: int) -> None:
+    """Third-view token accuracy of the world model under the optimal demonstrations' recorded actions."""
+    import json
+
+    from stages.collect.dataset import Dataset
+    from stages.common.frame_skip import compose_actions, frame_indices
+    from stages.tokenize.store import TokenStore
+    from stages.train_wm.rollout import load_world_model
+
+    wm = load_world_model(train_wm, "action", "cpu")
+    ds, store = Dataset(collect), TokenStore(tokenize)
+    meta = {m.episode_id: m for m in ds.episodes}
+    ids = json.loads((train_wm / "split.json").read_text())["heldout" if split == "ind" else "ood"]
+    ids = [i for i in ids if meta[i].kind == "optimal"][:episodes]
+    half, k_skip = wm.spec.grid[1], wm.spec.frame_skip
+    acc: dict[int, list] = {k: [] for k in STEPS_SHOWN}
+    still: dict[int, list] = {k: [] for k in STEPS_SHOWN}
+    for i in ids:
+        recorded = ds.load_states(i)["action"]  # (T, 7) control actions
+        tokens = np.asarray(store.episode(i), dtype=np.int64)[frame_indices(len(recorded), k_skip)]  # (T'+1, h, w)
+        actions = compose_actions(recorded, k_skip)  # (T', 7)
+        roll = wm.rollout(1)
+        roll.reset(torch.as_tensor(tokens[:1]))
+        for t in range(min(max(STEPS_SHOWN), len(actions))):
+            imagined = roll.step(torch.as_tensor(actions[t : t + 1])).tokens[0].numpy()  # (h, w)
+            if t + 1 in acc:
+                acc[t + 1].append(float((imagined[:half] == tokens[t + 1][:half]).mean()))
+                still[t + 1].append(float((tokens[0][:half] == tokens[t + 1][:half]).mean()))
+    print(f"recorded actions: {len(ids)} optimal {'held-out IND' if split == 'ind' else 'OOD'} demonstrations")
+    print("  third view: tokens equal to the recorded frame's (a still scene's in brackets): " + ", ".join(
+        f"{np.mean(acc[k]):.3f} ({np.mean(still[k]):.3f}) after {k}" for k in STEPS_SHOWN if acc[k]))
+
+
 def main() -> None:
     from policy_check import add_artifact_args, load_check
 
@@ -59,8 +97,13 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=75)
     ap.add_argument("--theta", type=float, default=0.5)
     ap.add_argument("--seed", type=int, default=2_000_000)
+    ap.add_argument("--recorded", action="store_true",
+                    help="the optimal demonstrations' recorded actions instead of the policy (up to --envs of them)")
     args = ap.parse_args()
     torch.set_num_threads(1)
+    if args.recorded:
+        recorded_fidelity(args.collect, args.tokenize, args.train_wm, args.split, args.envs)
+        return
 
     from stages.rl.imagined import imagine_and_replay
     from stages.sft.policy import POLICY_FILE
