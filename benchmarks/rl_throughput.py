@@ -29,17 +29,26 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def tokenizer():
+def tokenizer(device: str):
     from stages.tokenize import Config as TokConfig
     from stages.tokenize.model import ModelSpec, TokenizerNet
     from stages.tokenize.tokenizer import Tokenizer
 
     c = TokConfig()
     torch.manual_seed(0)
-    return Tokenizer(TokenizerNet(c.spec()))  # the small profile's architecture (one grid per view)
+    return Tokenizer(TokenizerNet(c.spec()), device)  # the small profile's architecture (one grid per view)
 
 
-def action_wm(tok):
+def instruction_embedding(instruction: str) -> dict[str, np.ndarray]:
+    """A fixed random unit vector as the instruction's embedding: like every weight here, its value
+    does not change the speed, and the benchmark then needs no text-encoder weights."""
+    from stages.sft.observation import TEXT_DIM
+
+    v = np.random.default_rng(0).standard_normal(TEXT_DIM).astype(np.float32)
+    return {instruction: v / np.linalg.norm(v)}
+
+
+def action_wm(tok, device: str):
     from stages.train_wm import Config as WMConfig
     from stages.train_wm.model import WMSpec, WorldModelNet
     from stages.train_wm.proprio import ProprioHead
@@ -51,7 +60,8 @@ def action_wm(tok):
                                heads=c.heads, head_depth=c.head_depth, mlp_ratio=c.mlp_ratio, window=c.window,
                                control_tokens=c.control_tokens, frame_skip=c.frame_skip))
     net.set_action_stats(torch.rand(256, 7) * 2 - 1)
-    return WorldModel(net.eval(), decode_steps=c.decode_steps, proprio_head=ProprioHead(tok.bits, tok.grid).eval())
+    return WorldModel(net.to(device).eval(), decode_steps=c.decode_steps,
+                      proprio_head=ProprioHead(tok.bits, tok.grid).to(device).eval())
 
 
 def ppo_cfg(num_envs: int):
@@ -72,11 +82,11 @@ def sft_policy(space):
     return make_policy(space, kwargs), info
 
 
-def timed_learn(env, steps: int, num_envs: int) -> float:
+def timed_learn(env, steps: int, num_envs: int, device: str) -> float:
     from stages.rl.ppo import make_ppo
 
     policy, info = sft_policy(env.observation_space)
-    model = make_ppo(env, ppo_cfg(num_envs), policy, info, device="cpu")
+    model = make_ppo(env, ppo_cfg(num_envs), policy, info, device=device)
     model.learn(total_timesteps=64 * num_envs)  # warm-up: one rollout + update
     t = time.perf_counter()
     model.learn(total_timesteps=steps, reset_num_timesteps=False)
@@ -91,8 +101,13 @@ def main() -> None:
     ap.add_argument("--sim-envs", type=int, default=2)
     ap.add_argument("--wm-dtype", choices=["fp32", "bf16", "auto"], default="auto",
                     help="the world-model env's step, decoding and LPIPS (the rl stage's wm_dtype; default as there)")
+    ap.add_argument("--device", default="cpu",
+                    help="torch device of the tokenizer, world model, LPIPS and PPO in both envs, as the rl stage's "
+                         "--device (the simulator itself always runs on the CPU)")
     args = ap.parse_args()
-    torch.set_num_threads(1)
+    if args.device == "cpu":
+        torch.set_num_threads(1)  # as the rl stage on a CPU
+    dev = args.device
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
     from stable_baselines3.common.vec_env import DummyVecEnv
@@ -103,35 +118,37 @@ def main() -> None:
     from stages.rl.wm_env import Start, WorldModelVecEnv
     from stages.sft.observation import ObservationFn
 
-    tok = tokenizer()
+    tok = tokenizer(dev)
     scene = next(s for s in default_catalog().values() if s.split == "ind")
-    probe = SimTaskEnv([SimSpec("push", scene.to_dict())], ObservationFn(tok, {}), max_steps=50, keep_frames=True)
+    spec = SimSpec("push", scene.to_dict(), instruction="push the object to the goal")  # any text: see instruction_embedding
+    obs_fn = ObservationFn(tok, instruction_embedding(spec.instruction))
+    probe = SimTaskEnv([spec], obs_fn, max_steps=50, keep_frames=True)
     first, _ = probe.reset(seed=0)
     instruction = probe.instruction
     third, wrist = probe.frames[0]
     probe.close()
-    obs_fn = ObservationFn(tok, {})
-    obs_fn.text([instruction])
-    tokens = tok.encode(third[None], wrist[None]).numpy()[0]
+    tokens = tok.encode(third[None], wrist[None]).cpu().numpy()[0]
 
-    wm = action_wm(tok)
-    goal = tok.decode(torch.as_tensor(tokens[None]))
-    reward = WMReward(GoalDistance(*goal, dtype=args.wm_dtype), alpha=2.0, beta=0.02, theta_sps=0.5, num_envs=args.num_envs)
+    wm = action_wm(tok, dev)
+    goal = tok.decode(torch.as_tensor(tokens[None], device=dev))
+    reward = WMReward(GoalDistance(*goal, dev, dtype=args.wm_dtype), alpha=2.0, beta=0.02, theta_sps=0.5, num_envs=args.num_envs)
     wm_env = WorldModelVecEnv(wm, tok, obs_fn, reward, [Start(0, instruction, tokens, first["proprio"])], num_envs=args.num_envs,
-                              max_steps=50, theta_done=0.999, seed=0, dtype=args.wm_dtype)
-    wm_rate = timed_learn(wm_env, args.wm_steps, args.num_envs)
-    sparse = WMReward(GoalDistance(*goal, dtype=args.wm_dtype), alpha=2.0, beta=0.0, theta_sps=0.5, num_envs=args.num_envs)
+                              max_steps=50, theta_done=0.999, seed=0, device=dev, dtype=args.wm_dtype)
+    wm_rate = timed_learn(wm_env, args.wm_steps, args.num_envs, dev)
+    sparse = WMReward(GoalDistance(*goal, dev, dtype=args.wm_dtype), alpha=2.0, beta=0.0, theta_sps=0.5, num_envs=args.num_envs)
     sparse_env = WorldModelVecEnv(wm, tok, obs_fn, sparse, [Start(0, instruction, tokens, first["proprio"])],
-                                  num_envs=args.num_envs, max_steps=50, theta_done=0.999, seed=0, dtype=args.wm_dtype)
-    sparse_rate = timed_learn(sparse_env, args.wm_steps, args.num_envs)
+                                  num_envs=args.num_envs, max_steps=50, theta_done=0.999, seed=0, device=dev,
+                                  dtype=args.wm_dtype)
+    sparse_rate = timed_learn(sparse_env, args.wm_steps, args.num_envs, dev)
 
     k = wm.spec.frame_skip
-    sim_env = DummyVecEnv([lambda i=i: SimTaskEnv([SimSpec("push", scene.to_dict())], obs_fn, max_steps=50, seed=i,
+    sim_env = DummyVecEnv([lambda i=i: SimTaskEnv([spec], obs_fn, max_steps=50, seed=i,
                                                   action_repeat=k) for i in range(args.sim_envs)])
-    sim_rate = timed_learn(sim_env, args.sim_steps, args.sim_envs)
+    sim_rate = timed_learn(sim_env, args.sim_steps, args.sim_envs, dev)
     sim_env.close()
 
-    print(f"PPO env (= policy) steps/s, updates included (one run, 1 torch thread, this machine); "
+    where = "1 torch thread" if dev == "cpu" else f"device {dev} ({torch.cuda.get_device_name(dev)})"
+    print(f"PPO env (= policy) steps/s, updates included (one run, {where}, this machine); "
           f"one step = {k} control steps in both envs")
     print(f"  world-model env: {args.num_envs} batched envs, small-profile action WM "
           f"(dim {wm.spec.dim}, depth {wm.spec.depth}, {wm.spec.tokens} tokens/frame, {wm.decode_steps} decoding passes, "

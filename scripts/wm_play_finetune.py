@@ -12,6 +12,9 @@ times). It writes a copy of the train_wm artifact directory with the new ``actio
 
     PYTHONPATH=. .venv/bin/python scripts/wm_play_finetune.py <collect> <tokenize> <train_wm> <sft> --out DIR \\
         [--episodes 96] [--max-steps 50] [--steps 1000] [--lr 3e-4] [--play-weight 2]
+
+``--episodes 0`` is the control: the same fine-tune on the training episodes alone (no play), which
+separates what the play data do from what the extra training steps do.
 """
 from __future__ import annotations
 
@@ -68,11 +71,14 @@ def main() -> None:
     from stages.train_wm.train import train_world_model
 
     torch.set_num_threads(1)
+    if args.episodes < 0:
+        raise ValueError(f"--episodes must be >= 0, got {args.episodes}")
     c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, args.sft / POLICY_FILE, split="ind",
-                   envs=args.episodes, steps=args.max_steps)
+                   envs=max(args.episodes, 1), steps=args.max_steps)
     t0 = time.perf_counter()
     try:
-        eps = play(c.policy, c.sim, c.specs, [args.seed + i for i in range(len(c.specs))], args.max_steps)
+        eps = play(c.policy, c.sim, c.specs[:args.episodes], [args.seed + i for i in range(args.episodes)],
+                   args.max_steps)
     finally:
         c.sim.close()
     wins = sum(e.done[-1] > 0 for e in eps)

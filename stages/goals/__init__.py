@@ -123,15 +123,18 @@ def run(ctx) -> None:
              reached=gen["reached"], ground_truth_tokens=gt.astype(np.uint16), has_ground_truth=has_gt,
              goal_mode=np.array(cfg.goal_mode))
 
-    third_gen, wrist_gen = tok.decode(torch.from_numpy(gen["tokens"]))
-    third_gt, wrist_gt = tok.decode(torch.from_numpy(gt))
-    third_start, wrist_start = tok.decode(torch.from_numpy(start))
+    def decoded(tokens: np.ndarray) -> list[torch.Tensor]:  # (E, h, w) -> [third, wrist] (E, 3, S, S) on the CPU
+        return [v.cpu() for v in tok.decode(torch.from_numpy(tokens))]
+
+    third_gen, wrist_gen = decoded(gen["tokens"])
+    third_gt, wrist_gt = decoded(gt)
+    third_start, wrist_start = decoded(start)
 
     def to_real_goal(third: torch.Tensor, wrist: torch.Tensor) -> np.ndarray:  # (E,) LPIPS, both views averaged
         d = lpips_distance(third, third_gt, device=ctx.device) + lpips_distance(wrist, wrist_gt, device=ctx.device)
         return (0.5 * d).cpu().numpy()
 
-    third_dir, wrist_dir = tok.decode(torch.from_numpy(direct))
+    third_dir, wrist_dir = decoded(direct)
     dist, dist_first = to_real_goal(third_gen, wrist_gen), to_real_goal(third_start, wrist_start)
     dist_direct = to_real_goal(third_dir, wrist_dir)
     meta = []

@@ -30,7 +30,7 @@ def imagine_goals(wm, start_tokens: torch.Tensor, instructions: list[str], *, th
     emb = wm.text_embedding(instructions)  # (E, 384)
     roll = wm.rollout(b, seed=seed)
     roll.reset(start_tokens.repeat_interleave(candidates, 0), emb.repeat_interleave(candidates, 0))
-    best_tok = start_tokens.repeat_interleave(candidates, 0).clone()  # (B, h, w)
+    best_tok = start_tokens.cpu().repeat_interleave(candidates, 0)  # (B, h, w), on the CPU like the rest of the bookkeeping
     best_p = torch.full((b,), -1.0)
     best_step = torch.zeros(b, dtype=torch.long)
     stopped = torch.zeros(b, dtype=torch.bool)

@@ -32,12 +32,16 @@ class DoneEnsemble(nn.Module):
 
 
 def fit_done_ensemble(hidden: torch.Tensor, success: torch.Tensor, *, heads: int, steps: int, lr: float,
-                      seed: int) -> tuple[DoneEnsemble, list[float]]:
-    """Fit each head on its own bootstrap resample (class-balanced BCE). hidden (M, D), success (M,)."""
+                      seed: int, device: str = "cpu") -> tuple[DoneEnsemble, list[float]]:
+    """Fit each head on its own bootstrap resample (class-balanced BCE). hidden (M, D), success (M,).
+
+    Trained on ``device``, where the returned ensemble stays; the resamples are drawn on the CPU.
+    """
     gen = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    model = DoneEnsemble(hidden.shape[1], heads)
-    y = success.float()
+    model = DoneEnsemble(hidden.shape[1], heads).to(device)
+    hidden = hidden.to(device)
+    y = success.float().cpu()
     pos, neg = torch.nonzero(y > 0.5)[:, 0], torch.nonzero(y <= 0.5)[:, 0]
     if len(pos) == 0 or len(neg) == 0:
         raise ValueError(f"the done ensemble needs frames of both classes: {len(pos)} successful, {len(neg)} not")
@@ -50,7 +54,7 @@ def fit_done_ensemble(hidden: torch.Tensor, success: torch.Tensor, *, heads: int
         loss = 0.0
         for k, (bp, bn) in enumerate(boots):  # half of each batch from either class
             idx = torch.cat([bp[torch.randint(len(bp), (64,), generator=gen)], bn[torch.randint(len(bn), (64,), generator=gen)]])
-            loss = loss + F.binary_cross_entropy_with_logits(model.heads[k](hidden[idx].float())[:, 0], y[idx])
+            loss = loss + F.binary_cross_entropy_with_logits(model.heads[k](hidden[idx].float())[:, 0], y[idx].to(device))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -67,5 +71,5 @@ class Guard:
 
     def __call__(self, hidden: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """(std (B,) of the heads' probabilities, confirmed (B,) bool: their mean reaches theta)."""
-        p = self.ensemble.probs(hidden)  # (K, B)
+        p = self.ensemble.probs(hidden.to(next(self.ensemble.parameters()).device))  # (K, B)
         return p.std(0).cpu().numpy().astype(np.float64), (p.mean(0) >= self.theta).cpu().numpy()

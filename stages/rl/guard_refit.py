@@ -40,7 +40,7 @@ def replay_labels(rows: list[Replay], hidden: torch.Tensor) -> tuple[torch.Tenso
     frames, labels = [], []
     for i, r in enumerate(rows):
         n = r.first_success if r.first_success > 0 else hidden.shape[1]
-        frames.append(hidden[i, :n])
+        frames.append(hidden[i, :n].cpu())  # beside the CPU copy of the recorded frames
         y = torch.zeros(n, dtype=torch.bool)
         y[n - 1] = r.first_success > 0
         labels.append(y)
@@ -56,13 +56,13 @@ class GuardRefit(BaseCallback):
 
     def __init__(self, env, imagine: Callable, base_hidden: torch.Tensor, base_success: torch.Tensor, *,
                  total_timesteps: int, rounds: int, heads: int, steps: int, lr: float, seed: int,
-                 coef: float, theta: float, log=None):
+                 coef: float, theta: float, device: str = "cpu", log=None):
         super().__init__()
         self.env, self.imagine, self.rounds = env, imagine, rounds
         self.hidden, self.success = base_hidden.float(), base_success.bool()
         self.base_frames = len(self.success)
         self.at = [total_timesteps * (k + 1) // (rounds + 1) for k in range(rounds)]  # PPO steps of each refit
-        self.fit = dict(heads=heads, steps=steps, lr=lr)
+        self.fit = dict(heads=heads, steps=steps, lr=lr, device=device)
         self.seed, self.coef, self.theta, self.log = seed, coef, theta, log
         self.history: list[dict] = []  # per round: what the replays said before that refit
         self.sim_policy_steps = 0

@@ -90,10 +90,10 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
         proprio0.append(first["proprio"])
     sim.keep_frames = False
     n = len(specs)
-    tokens = torch.stack(starts).long()  # (N, h, w)
+    tokens = torch.stack(starts).long().cpu()  # (N, h, w)
     roll = wm.rollout(n)
-    roll.reset(tokens)
-    proprio = torch.as_tensor(np.stack(proprio0))  # (N, 10)
+    roll.reset(tokens.to(wm.device))
+    proprio = torch.as_tensor(np.stack(proprio0))  # (N, 10), on the CPU (the head's output is brought back)
     obs = obs_fn.from_tokens(tokens, proprio.numpy(), instructions)
     actions = np.zeros((n, steps, 7), np.float32)
     probs = np.zeros((n, steps), np.float32)  # (N, T) done head after each step
@@ -103,12 +103,12 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     first_codes = obs["codes"] > 0  # (N, C, h, w) bool: the first frame's tokens as code bits
     codes = np.zeros((n, steps) + first_codes.shape[1:], bool)  # (N, T, C, h, w) the imagined frames' bits
     for t in range(steps):  # the whole horizon, so stricter thresholds can be read off later
-        a = torch.as_tensor(act(policy, obs, deterministic=True))
+        a = torch.as_tensor(act(policy, obs, deterministic=True), device=wm.device)
         a = torch.minimum(torch.maximum(a, wm.net.action_low), wm.net.action_high)  # what the WM sees (it clips)
-        actions[:, t] = a.numpy()  # replayed as seen, so both environments get the same actions
+        actions[:, t] = a.cpu().numpy()  # replayed as seen, so both environments get the same actions
         out = roll.step(a)
         if has_head:
-            proprio = wm.next_proprio(proprio, a, out.tokens)
+            proprio = wm.next_proprio(proprio, a, out.tokens).cpu()
         probs[:, t] = out.done_prob.cpu().numpy()
         if guard is not None:
             confirm[:, t] = guard.ensemble.probs(out.hidden).mean(0).cpu().numpy()  # (K, N) -> (N,)

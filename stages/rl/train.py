@@ -44,17 +44,18 @@ def train(ctx, cfg, inp) -> dict:
         with ctx.progress(len(fit_ids), "rl: hidden states for reward heads", unit="ep") as bar:
             fs_fit = frame_set(inp.wm, _episode_tuples(inp, fit_ids), inp.device, bar)
         for head in fits:
-            parts.heads[head], losses = HEAD_FITS[head](fs_fit, inp.tok, steps=cfg.head_steps, lr=cfg.head_lr, seed=cfg.seed)
+            parts.heads[head], losses = HEAD_FITS[head](fs_fit, inp.tok, steps=cfg.head_steps, lr=cfg.head_lr, seed=cfg.seed,
+                                                        device=inp.device)
             metrics[f"heads/{head}/final_mse"] = float(np.mean(losses[-20:]))
         metrics["heads/frames"] = int(len(fs_fit.reward))
         if cfg.guard and chosen.env == "wm":
             ensemble, losses = fit_done_ensemble(fs_fit.hidden, fs_fit.success, heads=cfg.guard_heads,
-                                                 steps=cfg.guard_steps, lr=cfg.head_lr, seed=cfg.seed)
+                                                 steps=cfg.guard_steps, lr=cfg.head_lr, seed=cfg.seed, device=inp.device)
             guard = Guard(ensemble, cfg.guard_coef, cfg.theta_done)
             metrics["guard/final_bce"] = float(np.mean(losses[-20:]))
             metrics["guard/positive_frames"] = int(fs_fit.success.sum())
-            torch.save(ensemble.state_dict(), ctx.out / "guard.pt")
-        torch.save({k: v.state_dict() for k, v in parts.heads.items()}, ctx.out / "reward_heads.pt")
+            torch.save(_cpu_state(ensemble), ctx.out / "guard.pt")
+        torch.save({k: _cpu_state(v) for k, v in parts.heads.items()}, ctx.out / "reward_heads.pt")
 
     goal_third, goal_wrist = inp.goal_frames()
     parts.distance = GoalDistance(goal_third, goal_wrist, inp.device, cfg.wm_dtype)  # LPIPS in the env's precision
@@ -153,7 +154,12 @@ def _guard_refit(ctx, cfg, inp, envs: list, raw_env, fs_fit):
 
     return GuardRefit(raw_env, imagine, fs_fit.hidden, fs_fit.success, total_timesteps=cfg.total_timesteps,
                       rounds=cfg.guard_replay_rounds, heads=cfg.guard_heads, steps=cfg.guard_steps, lr=cfg.head_lr,
-                      seed=cfg.seed, coef=cfg.guard_coef, theta=cfg.theta_done, log=ctx.log)
+                      seed=cfg.seed, coef=cfg.guard_coef, theta=cfg.theta_done, device=inp.device, log=ctx.log)
+
+
+def _cpu_state(module: torch.nn.Module) -> dict:
+    """A module's state dict on the CPU: artifacts load the same whatever device trained them."""
+    return {k: v.detach().cpu() for k, v in module.state_dict().items()}
 
 
 def _imagined_precision(ctx, cfg, inp, policy, guard=None) -> dict:

@@ -47,7 +47,7 @@ class ObservationFn:
 
     def from_tokens(self, tokens, proprio, instructions: Sequence[str]) -> dict[str, np.ndarray]:
         """tokens (B, h, w), proprio (B, 10) -> observation batch."""
-        codes = self.tok.codes(torch.as_tensor(np.asarray(tokens, dtype=np.int64))).cpu().numpy().astype(np.float32)
+        codes = self.tok.codes(tokens).cpu().numpy().astype(np.float32)  # tokens: numpy or torch, any device
         proprio = np.asarray(proprio, dtype=np.float32).reshape(len(codes), PROPRIO_DIM)
         return {"codes": codes, "proprio": proprio, "instruction": self.text(instructions)}
 

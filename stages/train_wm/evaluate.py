@@ -30,8 +30,8 @@ def real_images(tok, third: np.ndarray, wrist: np.ndarray) -> torch.Tensor:
 
 
 def decoded(tok, tokens: torch.Tensor) -> torch.Tensor:
-    """Token grids (N, h, w) decoded side by side (N, 3, S, 2S)."""
-    return side_by_side(*tok.decode(tokens.cpu()))
+    """Token grids (N, h, w) decoded side by side (N, 3, S, 2S), on the CPU (beside the real frames)."""
+    return side_by_side(*tok.decode(tokens)).cpu()
 
 
 def rollout_starts(episodes: list[Episode], horizon: int, per_episode: int, rng: np.random.Generator) -> list[tuple]:
@@ -160,15 +160,15 @@ def horizon_eval(wm: WorldModel, tok, episodes: list[Episode], images: dict, sta
     h, w = wm.spec.grid
     if wm.spec.kind == "action":
         acts = true_actions(episodes, starts, hmax)
-        pred = open_loop(wm, episodes, starts, hmax, actions=acts)
+        pred = open_loop(wm, episodes, starts, hmax, actions=acts).cpu()  # (K, hmax, N), beside the CPU real tokens
     else:
         text = torch.stack([torch.from_numpy(text_emb[episodes[i].instruction]) for i, _ in starts])
-        pred = open_loop(wm, episodes, starts, hmax, text=text)
+        pred = open_loop(wm, episodes, starts, hmax, text=text).cpu()
     shuffled = None
     if controllability and k > 1:
         # each start gets another start's action sequence (a derangement: never its own)
         perm = (torch.arange(k) + 1 + torch.randint(0, k - 1, (1,), generator=torch.Generator().manual_seed(0))) % k
-        shuffled = open_loop(wm, episodes, starts, hmax, actions=acts[perm])
+        shuffled = open_loop(wm, episodes, starts, hmax, actions=acts[perm]).cpu()
     start_tok = torch.stack([torch.from_numpy(episodes[i].tokens[s]) for i, s in starts]).view(k, h, w)
     metrics = {}
     for hz in HORIZONS:

@@ -8,7 +8,7 @@ from stable_baselines3.common.env_checker import check_env
 
 from stages.rl.rewards import GoalDistance, WMReward
 from stages.rl.wm_env import WorldModelEnv, WorldModelVecEnv
-from tests.rl.tiny import obs_fn, starts_for, tiny_action_wm, tiny_tokenizer
+from tests.rl.tiny import frames, obs_fn, starts_for, tiny_action_wm, tiny_tokenizer
 
 
 @pytest.fixture(scope="module")
@@ -139,3 +139,21 @@ def test_bf16_steps_give_fp32_rewards_close_to_fp32(parts):
     assert all(0.0 <= i["done_prob"] <= 1.0 for i in ib)
     with pytest.raises(ValueError, match="precision must be"):
         _vec(parts, dtype="fp16")
+
+
+@pytest.mark.parametrize("kind", ["numpy_uint16", "torch_int64", "list"])
+def test_observation_from_tokens_takes_numpy_torch_or_lists_alike(kind):
+    """The imagine-and-replay check hands the world model's token tensors (on its device) straight in;
+    the env hands numpy arrays: both must give the same observation."""
+    tok = tiny_tokenizer()
+    fn = obs_fn(tok)
+    third, wrist = frames(2)
+    tokens = tok.encode(third, wrist).numpy()  # (2, h, w) int64
+    given = {"numpy_uint16": tokens.astype(np.uint16), "torch_int64": torch.as_tensor(tokens),
+             "list": tokens.tolist()}[kind]
+    ref = fn.from_tokens(tokens, np.zeros((2, 10)), ["push the cube"] * 2)
+    got = fn.from_tokens(given, np.zeros((2, 10)), ["push the cube"] * 2)
+    assert set(got) == set(ref)
+    for k in ref:
+        np.testing.assert_array_equal(got[k], ref[k])
+    assert got["codes"].dtype == np.float32 and np.isin(got["codes"], [-1.0, 1.0]).all()

@@ -74,8 +74,11 @@ def frame_set(wm, episodes: list, device: str, progress=None) -> FrameSet:
                     np.concatenate(prog), np.concatenate(epi))
 
 
-def _fit(model, inputs, labels: torch.Tensor, steps: int, lr: float, batch: int, seed: int) -> list[float]:
-    gen = torch.Generator().manual_seed(seed)
+def _fit(model, inputs, labels: torch.Tensor, steps: int, lr: float, batch: int, seed: int, device: str) -> list[float]:
+    """MSE regression of ``model(*inputs)`` on ``labels``, on ``device`` (the model stays there)."""
+    model.to(device)
+    inputs, labels = [x.to(device) for x in inputs], labels.to(device)
+    gen = torch.Generator().manual_seed(seed)  # batches drawn on the CPU: the same on every device
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     losses = []
     model.train()
@@ -90,16 +93,18 @@ def _fit(model, inputs, labels: torch.Tensor, steps: int, lr: float, batch: int,
     return losses
 
 
-def fit_embedding_head(fs: FrameSet, tokenizer, *, steps: int, lr: float, seed: int) -> tuple[EmbeddingHead, list[float]]:
+def fit_embedding_head(fs: FrameSet, tokenizer, *, steps: int, lr: float, seed: int,
+                       device: str = "cpu") -> tuple[EmbeddingHead, list[float]]:
     """The head reads the world model's hidden states (``tokenizer`` unused: same signature as ``fit_proxy``)."""
     torch.manual_seed(seed)
     head = EmbeddingHead(fs.hidden.shape[1])
-    return head, _fit(head, [fs.hidden], fs.reward, steps, lr, 256, seed)
+    return head, _fit(head, [fs.hidden], fs.reward, steps, lr, 256, seed, device)
 
 
-def fit_proxy(fs: FrameSet, tokenizer, *, steps: int, lr: float, seed: int) -> tuple[ProxyCNN, list[float]]:
+def fit_proxy(fs: FrameSet, tokenizer, *, steps: int, lr: float, seed: int,
+              device: str = "cpu") -> tuple[ProxyCNN, list[float]]:
     """The proxy CNN reads frames decoded by the tokenizer, as the world model's frames are."""
     torch.manual_seed(seed)
     third, wrist = tokenizer.decode(fs.tokens)
     cnn = ProxyCNN()
-    return cnn, _fit(cnn, [third.cpu(), wrist.cpu()], fs.reward, steps, lr, 64, seed)
+    return cnn, _fit(cnn, [third, wrist], fs.reward, steps, lr, 64, seed, device)

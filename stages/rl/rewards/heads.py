@@ -14,6 +14,10 @@ import torch.nn as nn
 from stages.rl.rewards.base import RewardModule, RewardParts, StepBatch
 
 
+def _device(module: nn.Module) -> torch.device:
+    return next(module.parameters()).device
+
+
 class EmbeddingHead(nn.Module):
     def __init__(self, dim: int, hidden: int = 128):
         super().__init__()
@@ -50,7 +54,8 @@ class EmbeddingReward(RewardModule):
 
     @torch.no_grad()
     def __call__(self, batch: StepBatch) -> np.ndarray:
-        return self.head(batch.hidden.float()).clamp(0.0, 1.0).cpu().numpy().astype(np.float64)
+        h = batch.hidden.float().to(_device(self.head))  # the env's batches are on its device, diagnostics' on the CPU
+        return self.head(h).clamp(0.0, 1.0).cpu().numpy().astype(np.float64)
 
 
 class ProxyReward(RewardModule):
@@ -67,4 +72,5 @@ class ProxyReward(RewardModule):
 
     @torch.no_grad()
     def __call__(self, batch: StepBatch) -> np.ndarray:
-        return self.cnn(batch.third, batch.wrist).clamp(0.0, 1.0).cpu().numpy().astype(np.float64)
+        dev = _device(self.cnn)
+        return self.cnn(batch.third.to(dev), batch.wrist.to(dev)).clamp(0.0, 1.0).cpu().numpy().astype(np.float64)
