@@ -85,6 +85,17 @@ def _stage_logger(stage: str, key: str, log_file: Path) -> tuple[logging.Logger,
     return log, fh
 
 
+def _refuse_changed_code(p: dict[str, Any]) -> None:
+    """Fail if the stage's source changed after the run planned its key: the artifact would be filed
+    under a key that names code it was not made by (an edit during a long run)."""
+    from pipeline.keys import code_digest
+
+    planned = p["key_inputs"].get("code")
+    if planned is not None and code_digest(p["module"], p["roots"]) != planned:
+        raise StageFailed(p["stage"], p["key"], f"the source of {p['module']} (or a module it imports) changed after "
+                          "this run planned its key; nothing was run: run again to plan with the current code", None)
+
+
 def execute_node(p: dict[str, Any]) -> dict[str, Any]:
     """Run the node described by payload ``p`` unless its key is (by now) committed.
 
@@ -108,6 +119,7 @@ def execute_node(p: dict[str, Any]) -> dict[str, Any]:
         except PipelineError as e:
             raise StageFailed(stage, key, str(e), None) from None
         t_in = time.perf_counter() - t_in
+        _refuse_changed_code(p)
         mod = importlib.import_module(p["module"])
         config = mod.Config.model_validate(p["config"])
         staging = store.staging(stage, key)

@@ -14,7 +14,8 @@ times). It writes a copy of the train_wm artifact directory with the new ``actio
         [--episodes 96] [--max-steps 50] [--steps 1000] [--lr 3e-4] [--play-weight 2]
 
 ``--episodes 0`` is the control: the same fine-tune on the training episodes alone (no play), which
-separates what the play data do from what the extra training steps do.
+separates what the play data do from what the extra training steps do. The rl stage does the same
+inside the pipeline with ``rl.wm_play_episodes`` (stages/rl/play.py), and then trains PPO in the result.
 """
 from __future__ import annotations
 
@@ -23,32 +24,7 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
-
-
-def play(policy, sim, specs: list, seeds: list[int], max_steps: int) -> list:
-    """One recorded episode per (spec, seed): ``stages.train_wm.data.Episode`` at policy steps."""
-    from stages.sft.policy import act
-    from stages.tokenize.lfq import codes_to_tokens
-    from stages.train_wm.data import Episode
-
-    out = []
-    for i, (spec, seed) in enumerate(zip(specs, seeds)):
-        obs, _ = sim.reset(seed=seed, options={"spec": spec})
-        frames, proprio, actions, done = [obs["codes"]], [obs["proprio"]], [], [0.0]
-        for _ in range(max_steps):
-            a = act(policy, {k: v[None] for k, v in obs.items()})[0]
-            obs, _, term, trunc, info = sim.step(a)
-            frames.append(obs["codes"]), proprio.append(obs["proprio"]), actions.append(a)
-            done.append(float(info["success"]))
-            if term or trunc:
-                break
-        tokens = codes_to_tokens(torch.as_tensor(np.stack(frames))).reshape(len(frames), -1).numpy()  # (T+1, N)
-        out.append(Episode(f"play-{i}", spec.instruction, "ind", tokens.astype(np.int64),
-                           np.stack(actions).astype(np.float32), np.asarray(done, np.float32),
-                           np.stack(proprio).astype(np.float32), "play"))
-    return out
 
 
 def main() -> None:
@@ -65,10 +41,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=5_000_000, help="first play seed (the checks use 2_000_000+)")
     args = ap.parse_args()
 
+    from stages.rl.play import finetune_on_play, play_episodes
     from stages.sft.policy import POLICY_FILE
-    from stages.train_wm.data import ClipSampler, load_episodes
-    from stages.train_wm.rollout import CHECKPOINTS, TEXT_EMBEDDINGS, save_world_model
-    from stages.train_wm.train import train_world_model
+    from stages.train_wm.data import load_episodes
+    from stages.train_wm.rollout import CHECKPOINTS, save_world_model
 
     torch.set_num_threads(1)
     if args.episodes < 0:
@@ -77,28 +53,20 @@ def main() -> None:
                    envs=max(args.episodes, 1), steps=args.max_steps)
     t0 = time.perf_counter()
     try:
-        eps = play(c.policy, c.sim, c.specs[:args.episodes], [args.seed + i for i in range(args.episodes)],
-                   args.max_steps)
+        eps = play_episodes(c.policy, c.sim, c.specs[:args.episodes], [args.seed + i for i in range(args.episodes)],
+                            args.max_steps)
     finally:
         c.sim.close()
     wins = sum(e.done[-1] > 0 for e in eps)
     print(f"play: {len(eps)} episodes ({wins} successes, {sum(e.length for e in eps)} steps) in {time.perf_counter() - t0:.0f} s")
 
-    cfg = json.loads((args.train_wm / "manifest.json").read_text())["key_inputs"]["config"]
     split = set(json.loads((args.train_wm / "split.json").read_text())["train"])
     train = [e for e in load_episodes(args.collect, args.tokenize, frame_skip=int(c.wm.spec.frame_skip))
              if e.episode_id in split]
-    text = {k: np.asarray(v, np.float32) for k, v in json.loads((args.train_wm / TEXT_EMBEDDINGS).read_text()).items()}
-    missing = sorted({e.instruction for e in eps} - set(text))
-    if missing:
-        raise ValueError(f"instructions without a text embedding in {args.train_wm}: {missing[:3]}")
-    sampler = ClipSampler(train + eps * args.play_weight, cfg["window"], text, cfg["seed"] + 99)
     torch.set_num_threads(2)
-    net = c.wm.net
-    result = train_world_model(net, sampler, steps=args.steps, batch_size=cfg["batch_size"], lr=args.lr,
-                               weight_decay=cfg["weight_decay"], done_weight=cfg["done_weight"],
-                               done_kind=cfg["done_loss"], seed=cfg["seed"] + 7, device="cpu",
-                               changed_weight=cfg["changed_weight"], done_balance=cfg["done_balance"])
+    wm, result = finetune_on_play(c.wm, args.train_wm, train, eps, steps=args.steps, lr=args.lr,
+                                  weight=args.play_weight, device="cpu")
+    net = wm.net
     print(f"fine-tuned {args.steps} steps in {result['seconds']:.0f} s: ce {result['final']['ce']:.3f}, "
           f"acc {result['final']['acc']:.3f}, done {result['final']['done']:.4f}")
     args.out.mkdir(parents=True, exist_ok=True)

@@ -33,6 +33,10 @@ def train(ctx, cfg, inp) -> dict:
     envs = inp.training_envs(tasks)
     metrics["train_environments"] = len(envs)
     ctx.log.info("rl: reward %s, %d training environments of tasks %s", cfg.reward, len(envs), tasks)
+    if cfg.wm_play_episodes:  # the world model everything below uses, fine-tuned on the SFT policy's play
+        from stages.rl.play import play_and_finetune
+
+        metrics.update(play_and_finetune(ctx, cfg, inp, envs))
 
     # ---- learned rewards (fitted to the rule reward of IND training episodes) ----------------------
     wanted = list(REGISTRY) if cfg.diagnostics == "all" else [cfg.reward]
@@ -108,7 +112,7 @@ def train(ctx, cfg, inp) -> dict:
         metrics.update({f"self_imitation/{k}": v for k, v in model.self_imitation.last_stats.items()})
     if refit is not None:
         metrics.update(refit.metrics())
-        torch.save(raw_env.guard.ensemble.state_dict(), ctx.out / "guard.pt")  # the last refit's ensemble
+        torch.save(_cpu_state(raw_env.guard.ensemble), ctx.out / "guard.pt")  # the last refit's ensemble
     if isinstance(raw_env, WorldModelVecEnv):
         metrics["ppo/clipped_action_entries"] = int(raw_env.roll.clip_count)
         metrics["ppo/wm_dtype"] = raw_env.dtype  # what "auto" resolved to on this machine
@@ -119,7 +123,7 @@ def train(ctx, cfg, inp) -> dict:
     return metrics
 
 
-def _replay_sim(ctx, cfg, inp, picked: list):
+def replay_sim(ctx, cfg, inp, picked: list):
     """(ManiSkill env over the picked environments, rendering and controlling as collect did, their specs)."""
     from stages.collect.catalog import read_scenes_json
     from stages.collect.dataset import read_sim_facts
@@ -142,7 +146,7 @@ def _guard_refit(ctx, cfg, inp, envs: list, raw_env, fs_fit):
 
     def imagine(policy, k: int):
         policy.set_training_mode(False)  # PPO's next update switches it back
-        sim, specs = _replay_sim(ctx, cfg, inp, picked)
+        sim, specs = replay_sim(ctx, cfg, inp, picked)
         seeds = [SEED_BASE + 100_000 * cfg.seed + 1000 * k + i for i in range(len(specs))]
         record: dict = {}
         try:
@@ -176,7 +180,7 @@ def _imagined_precision(ctx, cfg, inp, policy, guard=None) -> dict:
         picked = pick_environments([e for e in inp.envs if e.split == split and e.task in inp.tasks], cfg.precision_envs)
         if not picked:
             continue
-        sim, specs = _replay_sim(ctx, cfg, inp, picked)
+        sim, specs = replay_sim(ctx, cfg, inp, picked)
         seeds = [3_000_000 + 1000 * cfg.seed + i for i in range(len(specs))]  # apart from training and evaluation
         try:
             with ctx.progress(len(specs), f"rl: imagined vs replayed ({split})", unit="env") as bar:

@@ -218,3 +218,22 @@ def test_the_guard_refits_on_replayed_imagined_episodes(store):
                 assert v is None or 0.0 <= v <= 1.0
         rows = json.loads((rl / "imagined.json").read_text())[split]
         assert rows and all(1 <= len(r["token_accuracy"]) == len(r["copy_accuracy"]) for r in rows)
+
+
+def test_the_world_model_is_fine_tuned_on_the_sft_policys_play(store):
+    import torch
+
+    from stages.rl.play import PLAY_WM
+    from stages.train_wm.rollout import CHECKPOINTS, load_net
+
+    cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.wm_play_episodes=2", "--set", "rl.wm_play_steps=3")
+    rl = artifact(store, "rl")
+    m = json.loads((rl / "metrics.json").read_text())
+    assert m["wm_play/episodes"] == 2 and 0 <= m["wm_play/successes"] <= 2
+    assert 2 <= m["wm_play/policy_steps"] <= 2 * 15  # at least one step each, at most the toy horizon
+    assert m["wm_play/train_episodes"] > 0 and m["wm_play/finetune_seconds"] > 0
+    tuned = load_net(rl / PLAY_WM).state_dict()
+    base = load_net(artifact(store, "train_wm") / CHECKPOINTS["action"]).state_dict()
+    assert tuned.keys() == base.keys()
+    assert any(not torch.equal(tuned[k], base[k]) for k in base)  # three steps moved it
+    assert "imagined/ind/imagined_done" in m  # the precision check ran, in the fine-tuned model

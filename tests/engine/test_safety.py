@@ -112,3 +112,22 @@ def test_sigkill_of_a_parallel_sweep_takes_its_workers_down_and_the_rerun_comple
     ws.reset_log()
     ws.cli("sweep", "rewards", "--until", "rl", "--jobs", "2")  # not blocked by a surviving worker's lock
     assert Counter(ws.executions())["rl"] == 12
+
+
+def test_a_stage_whose_source_changed_during_the_run_refuses_to_run(ws):
+    marker = ws.root / "tokenize.started"
+    proc = ws.popen("run", "--until", "train_wm", TEST_SLEEP_STAGE="tokenize", TEST_SLEEP="2", TEST_MARKER=marker)
+    deadline = time.time() + 60
+    while not marker.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.time() < deadline
+        time.sleep(0.05)
+    src = ws.root / "ts" / "train_wm.py"  # planned already: its key names the source as it was
+    src.write_text(src.read_text() + "\n# edited while the run was going\n")
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 1, err
+    assert "changed after this run planned its key" in err
+    assert ws.executions() == ["collect", "tokenize"]  # train_wm never started
+    ws.reset_log()
+    ws.cli("run", "--until", "train_wm")  # planned again with the edited source: runs under a new key
+    assert ws.executions() == ["train_wm"]
