@@ -12,7 +12,9 @@ through the same tokenizer. Both use the same PPO settings and policy. An env st
 in both: one world-model frame = ``frame_skip`` control steps, which the simulator env runs by
 repeating the action (stages/rl/sim_env.py), so both advance the same robot time per step.
 
-    .venv/bin/python benchmarks/rl_throughput.py [--wm-steps 2048] [--sim-steps 256]
+    .venv/bin/python benchmarks/rl_throughput.py [--wm-steps 2048] [--sim-steps 256] [--num-envs 16] [--device cuda]
+
+The instruction's embedding is a fixed random unit vector (no text-encoder weights needed).
 """
 from __future__ import annotations
 
