@@ -11,7 +11,11 @@ times). It writes a copy of the train_wm artifact directory with the new ``actio
 ``scripts/replay_imagined.py`` takes it as it is (run it on seeds the play never used: its default).
 
     PYTHONPATH=. .venv/bin/python scripts/wm_play_finetune.py <collect> <tokenize> <train_wm> <sft> --out DIR \\
-        [--episodes 96] [--max-steps 50] [--steps 1000] [--lr 3e-4] [--play-weight 2]
+        [--episodes 96] [--max-steps 50] [--steps 1000] [--lr 3e-4] [--play-weight 2] [--policy FILE]
+
+``--policy <rl>/policy.zip`` lets a PPO policy play instead of the SFT policy; with a ``train_wm``
+directory whose ``action_wm.pt`` is an rl artifact's ``play_action_wm.pt`` (symlink the rest), this is
+a second round of play: the world model sees where the policy trained in it goes wrong.
 
 ``--episodes 0`` is the control: the same fine-tune on the training episodes alone (no play), which
 separates what the play data do from what the extra training steps do. The rl stage does the same
@@ -39,6 +43,9 @@ def main() -> None:
     ap.add_argument("--lr", type=float, default=3e-4)
     ap.add_argument("--play-weight", type=int, default=2, help="how many times the play episodes are listed")
     ap.add_argument("--seed", type=int, default=5_000_000, help="first play seed (the checks use 2_000_000+)")
+    ap.add_argument("--policy", type=Path, default=None,
+                    help="the policy that plays: a policy file (an rl artifact's policy.zip, say); default the SFT policy")
+    ap.add_argument("--threads", type=int, default=2, help="torch threads of the fine-tune")
     args = ap.parse_args()
 
     from stages.rl.play import finetune_on_play, play_episodes
@@ -49,7 +56,7 @@ def main() -> None:
     torch.set_num_threads(1)
     if args.episodes < 0:
         raise ValueError(f"--episodes must be >= 0, got {args.episodes}")
-    c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, args.sft / POLICY_FILE, split="ind",
+    c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, args.policy or args.sft / POLICY_FILE, split="ind",
                    envs=max(args.episodes, 1), steps=args.max_steps)
     t0 = time.perf_counter()
     try:
@@ -63,7 +70,7 @@ def main() -> None:
     split = set(json.loads((args.train_wm / "split.json").read_text())["train"])
     train = [e for e in load_episodes(args.collect, args.tokenize, frame_skip=int(c.wm.spec.frame_skip))
              if e.episode_id in split]
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
     wm, result = finetune_on_play(c.wm, args.train_wm, train, eps, steps=args.steps, lr=args.lr,
                                   weight=args.play_weight, device="cpu")
     net = wm.net
