@@ -2,13 +2,17 @@
 train_wm config overrides, then open-loop PSNR / LPIPS / token accuracy at horizons 1, 5, 15 on
 held-out IND and OOD episodes, next to copy-last, shuffled actions and the tokenizer ceiling.
 
-    PYTHONPATH=. .venv/bin/python scripts/wm_ablation.py <collect_dir> <tokenize_dir> '{"frame_skip": 4}'
+    PYTHONPATH=. .venv/bin/python scripts/wm_ablation.py <collect_dir> <tokenize_dir> '{"frame_skip": 4}' [--save FILE]
+
+``--save FILE`` also writes the trained action WM as a checkpoint (the stage's format): with a
+different ``seed`` in the overrides, an independently trained member for an ensemble check
+(``scripts/wm_disagreement.py``).
 
 Uses the stage's own functions (load_episodes, ClipSampler, train_world_model, horizon_eval); the
 held-out IND list is the tokenizer's, OOD is capped at 6 episodes, 6 starts per episode.
 """
+import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -23,13 +27,19 @@ from stages.tokenize.tokenizer import load_tokenizer
 from stages.train_wm.data import ClipSampler, load_episodes, split_episodes
 from stages.train_wm.evaluate import horizon_eval, real_images, rollout_starts
 from stages.train_wm.model import WorldModelNet
-from stages.train_wm.rollout import WorldModel
+from stages.train_wm.rollout import WorldModel, save_world_model
 from stages.train_wm.train import train_world_model
 
 
 def main() -> None:
     torch.set_num_threads(1)
-    collect, tok_dir, overrides = Path(sys.argv[1]), Path(sys.argv[2]), json.loads(sys.argv[3])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("collect", type=Path)
+    ap.add_argument("tokenize", type=Path)
+    ap.add_argument("overrides", type=json.loads, help="train_wm config overrides as JSON")
+    ap.add_argument("--save", type=Path, default=None, help="write the trained action WM checkpoint here")
+    args = ap.parse_args()
+    collect, tok_dir, overrides = args.collect, args.tokenize, args.overrides
     cfg = W.Config(**overrides)
     torch.manual_seed(cfg.seed)
     eps = load_episodes(collect, tok_dir, frame_skip=cfg.frame_skip)
@@ -46,6 +56,8 @@ def main() -> None:
                           done_balance=cfg.done_balance)
     print(overrides, f"{len(train)} train episodes, train s {time.time() - t0:.0f}",
           {k: round(v, 3) for k, v in r["final"].items()}, flush=True)
+    if args.save:
+        save_world_model(net, args.save, {"decode_steps": cfg.decode_steps, "temperature": cfg.temperature})
     wm = WorldModel(net, cfg.decode_steps, 0.0)
     tok, ds = load_tokenizer(tok_dir, "cpu"), Dataset(collect)
     for name, split in (("ind", heldout), ("ood", ood[:6])):
