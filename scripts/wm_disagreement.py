@@ -127,7 +127,6 @@ def main() -> None:
     true = [i for i in imagined if rows[i].success]
     false = [i for i in imagined if not rows[i].success]
     print(f"{args.split}: {len(rows)} environments, {len(imagined)} imagined successes, {len(true)} real", flush=True)
-    out = []
     for name, s in signals.items():
         at = {i: float(s[i, rows[i].done_at - 1]) for i in imagined}  # at the success step
         upto = {i: float(s[i, : rows[i].done_at].mean()) for i in imagined}  # mean over the episode until then
@@ -143,7 +142,6 @@ def main() -> None:
                   f"false {np.mean([d[i] for i in false]) if false else float('nan'):.3f} "
                   f"AUROC {auc if auc is None else round(auc, 3)} | veto below median keeps {kept_t} real / {kept_t + kept_f}",
                   flush=True)
-        out.append(name)
     if args.json:
         args.json.write_text(json.dumps({"split": args.split, "rows": [
             {"env": r.env_id, "done_at": r.done_at, "success": r.success, "first_success": r.first_success,
