@@ -101,6 +101,8 @@ def main() -> None:
     import stages.sft.policy as sft_policy
 
     record: dict = {}
+    # imagine_and_replay does not return its actions; recording them here leaves stages/rl (and so
+    # every rl artifact's key) untouched. The wrapper is removed in `finally`.
     taken: list[np.ndarray] = []  # (N, 7) per step: the actions imagine_and_replay asks the policy for
     act = sft_policy.act
     sft_policy.act = lambda *a, **k: taken.append(np.asarray(act(*a, **k), np.float32)) or taken[-1]
