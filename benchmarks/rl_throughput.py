@@ -10,7 +10,7 @@ encoding stays fp32 in every case (the policy was trained on fp32 tokens). Simul
 Panda, ``sim_envs`` envs in a DummyVecEnv, reward = the task's rule reward; every frame goes
 through the same tokenizer. Both use the same PPO settings and policy. An env step is a policy step
 in both: one world-model frame = ``frame_skip`` control steps, which the simulator env runs by
-repeating the action (stages/rl/sim_env.py), so both advance the same robot time per step.
+repeating the action (stages/common/sim_env.py), so both advance the same robot time per step.
 
     .venv/bin/python benchmarks/rl_throughput.py [--wm-steps 2048] [--sim-steps 256] [--num-envs 16] [--device cuda]
 
@@ -116,7 +116,7 @@ def main() -> None:
 
     from stages.collect.sim import default_catalog
     from stages.rl.rewards import GoalDistance, WMReward
-    from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.common.sim_env import SimSpec, SimTaskEnv
     from stages.rl.wm_env import Start, WorldModelVecEnv
     from stages.sft.observation import ObservationFn
 

@@ -44,7 +44,7 @@ def main() -> None:
     from rl_throughput import tokenizer  # the small tokenizer architecture, random weights
     from stages.collect.sim import default_catalog
     from stages.sft.observation import ObservationFn
-    from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.common.sim_env import SimSpec, SimTaskEnv
 
     scenes = [s for s in default_catalog().values() if s.split == "ind"]
     specs = [SimSpec("push", s.to_dict()) for s in scenes]

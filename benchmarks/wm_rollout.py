@@ -12,7 +12,7 @@ then ManiSkill PickCube-v1 env steps/s at 64x64 RGB (low-poly Panda unless --sto
 
 What is compared: one world-model step is ``frame_skip`` control steps of the simulator (train_wm's
 ``frame_skip``, default 4; stages/common/frame_skip.py), and the RL policy acts once per step in
-both environments (the simulator env repeats the action, stages/rl/sim_env.py). So the ratio is
+both environments (the simulator env repeats the action, stages/common/sim_env.py). So the ratio is
 given per policy step (the same 0.2 s of robot time in both): WM steps/s over simulator control
 steps/s divided by frame_skip; the per-control-step ratio is printed too.
 

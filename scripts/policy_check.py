@@ -14,8 +14,8 @@ class PolicyCheck:
     obs_fn: object  # stages.sft.observation.ObservationFn
     wm: object  # stages.train_wm.rollout.WorldModel (the action WM)
     policy: object
-    specs: list  # stages.rl.sim_env.SimSpec, one per picked environment
-    sim: object  # stages.rl.sim_env.SimTaskEnv over ``specs`` (close it)
+    specs: list  # stages.common.sim_env.SimSpec, one per picked environment
+    sim: object  # stages.common.sim_env.SimTaskEnv over ``specs`` (close it)
 
 
 def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_path: Path, *, split: str,
@@ -28,8 +28,8 @@ def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_
     from stages.collect.catalog import read_scenes_json
     from stages.collect.dataset import read_sim_facts
     from stages.goals.environments import list_environments
-    from stages.rl.imagined import pick_environments
-    from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.common.environments import pick_environments
+    from stages.common.sim_env import SimSpec, SimTaskEnv
     from stages.sft import TEXT_EMBEDDINGS, read_policy_json
     from stages.sft.observation import ObservationFn
     from stages.sft.policy import load_policy

@@ -14,12 +14,12 @@ times). It writes a copy of the train_wm artifact directory with the new ``actio
         [--episodes 96] [--max-steps 50] [--steps 1000] [--lr 3e-4] [--play-weight 2] [--policy FILE]
 
 ``--policy <rl>/policy.zip`` lets a PPO policy play instead of the SFT policy; with a ``train_wm``
-directory whose ``action_wm.pt`` is an rl artifact's ``play_action_wm.pt`` (symlink the rest), this is
+directory whose ``action_wm.pt`` is a wm_play artifact's ``action_wm.pt`` (symlink the rest), this is
 a second round of play: the world model sees where the policy trained in it goes wrong.
 
 ``--episodes 0`` is the control: the same fine-tune on the training episodes alone (no play), which
-separates what the play data do from what the extra training steps do. The rl stage does the same
-inside the pipeline with ``rl.wm_play_episodes`` (stages/rl/play.py), and then trains PPO in the result.
+separates what the play data do from what the extra training steps do. The ``wm_play`` stage does the
+same inside the pipeline (stages/wm_play), and the rl stage trains PPO in the result.
 """
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2, help="torch threads of the fine-tune")
     args = ap.parse_args()
 
-    from stages.rl.play import finetune_on_play, play_episodes
+    from stages.wm_play.play import finetune_on_play, play_episodes
     from stages.sft.policy import POLICY_FILE
     from stages.train_wm.data import load_episodes
     from stages.train_wm.rollout import CHECKPOINTS, save_world_model

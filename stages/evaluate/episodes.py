@@ -41,7 +41,7 @@ def _sim_for(job: Job):
 
     import torch
 
-    from stages.rl.sim_env import SimTaskEnv
+    from stages.common.sim_env import SimTaskEnv
     from stages.sft.observation import ObservationFn
     from stages.tokenize.tokenizer import load_tokenizer
 
@@ -57,7 +57,7 @@ def _sim_for(job: Job):
 
 
 def _spec(job: Job):
-    from stages.rl.sim_env import SimSpec
+    from stages.common.sim_env import SimSpec
 
     return SimSpec(job.task, job.scene)
 

@@ -13,6 +13,8 @@ Inputs:
     collect -- episodes (demonstrations, initial states, rule-reward labels), scene catalog
     tokenize -- token store and tokenizer (the observation function)
     train_wm -- the action world model (with its proprioception head), its split, text embeddings
+    wm_play -- whether that model was fine-tuned on the SFT policy's play, and the weights if so
+    (``stages.wm_play.action_world_model``): the model everything here imagines in
     goals -- one goal frame per environment
     sft -- the behaviour-cloned policy PPO starts from, its tasks and frame skip (``policy.json``)
 
@@ -22,8 +24,6 @@ Outputs:
     reward_heads.pt     fitted embedding / proxy heads (when fitted)
     guard.pt            the guard's done-classifier ensemble (``guard``; with ``guard_replay_rounds``
                         the last refit's, ``stages.rl.guard_refit``)
-    play_action_wm.pt   with ``wm_play_episodes``, the action world model fine-tuned on the SFT policy's
-                        play (``stages.rl.play``), the one PPO trained in
     episodes.json       every training episode: return, length, terminated by done head or truncated
     training.png        episode return over env steps
     tensorboard/        episode return / length and PPO update statistics, live (``stages.common.curves``)
@@ -39,7 +39,7 @@ Outputs:
 
 Key includes:
     this config (reward module and its weights, PPO hyper-parameters, seed) and the keys of
-    collect, tokenize, train_wm, goals and sft.
+    collect, tokenize, train_wm, wm_play, goals and sft.
 
 Toy profile:
     4 world-model envs, a few hundred PPO steps, tiny head fits; ``rule`` uses one simulator env
@@ -94,13 +94,6 @@ class Config(BaseModel):
                                 "episodes before its success (a state the data reached) and are truncated after this "
                                 "many steps, PPO bootstrapping the value there (short branched rollouts: the "
                                 "imagination stays near real states; world-model rewards only)")
-    wm_play_episodes: int = Field(0, ge=0, description="> 0: before anything else the SFT policy plays this many "
-                                  "episodes in ManiSkill on IND training environments, and a copy of the action world "
-                                  "model fine-tuned on its training episodes plus this play (failures included) is "
-                                  "the one the stage uses (stages/rl/play.py; world-model rewards only); 0 = off")
-    wm_play_steps: int = Field(2000, ge=1, description="fine-tuning steps of the world model on the play")
-    wm_play_lr: float = Field(3e-4, gt=0, description="its peak learning rate (train_wm's schedule)")
-    wm_play_weight: int = Field(2, ge=1, description="times each play episode is listed beside the training episodes")
     num_envs: int = Field(16, ge=1, description="world-model environments stepped as one batch")
     wm_dtype: Literal["fp32", "bf16", "auto"] = Field(
         "auto", description="the world-model env's step, frame decoding and LPIPS reward convolutions: auto = bf16 on CUDA and on a CPU that runs "
@@ -156,13 +149,6 @@ class Config(BaseModel):
         if self.branch_horizon and REGISTRY[self.reward].env != "wm":
             raise ValueError(f"branch_horizon={self.branch_horizon} starts world-model episodes mid-way, but reward "
                              f"{self.reward!r} trains in the simulator, which starts only from resets; set it to 0")
-        return self
-
-    @model_validator(mode="after")
-    def _play_needs_the_world_model(self) -> "Config":
-        if self.wm_play_episodes and REGISTRY[self.reward].env != "wm":
-            raise ValueError(f"wm_play_episodes={self.wm_play_episodes} fine-tunes the world model PPO trains in, but "
-                             f"reward {self.reward!r} trains in the simulator; set it to 0")
         return self
 
     @model_validator(mode="after")

@@ -53,18 +53,6 @@ class Replay:
     copy_accuracy: tuple = ()  # the same for the first frame's tokens: what imagining a still scene would score
 
 
-def pick_environments(envs: list, n: int) -> list:
-    """Up to ``n`` environments spread round-robin over their tasks (sorted), in a fixed order."""
-    by_task: dict[str, list] = {}
-    for e in envs:
-        by_task.setdefault(e.task, []).append(e)
-    tasks = sorted(by_task)
-    if not tasks:
-        return []
-    return [by_task[tasks[i % len(tasks)]][(i // len(tasks)) % len(by_task[tasks[i % len(tasks)]])]
-            for i in range(n)]
-
-
 @torch.no_grad()
 def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[int], steps: int,
                        theta: float, record: dict | None = None, guard=None) -> list[Replay]:

@@ -24,7 +24,7 @@ class RLInputs:
     envs: list[Environment]  # every environment, in the goals artifact's order
     goal_index: dict  # env_id -> row in the goals artifact
     goals: dict  # stages.goals.load_goals
-    wm: object  # the action world model (stages.train_wm.rollout.WorldModel)
+    wm: object  # the action world model (stages.train_wm.rollout.WorldModel), fine-tuned by wm_play if it did
     obs_fn: ObservationFn
     device: str
     sft_policy: object  # stages.sft.policy.TaskPolicy, what PPO starts from
@@ -38,10 +38,11 @@ class RLInputs:
         from stages.sft.policy import POLICY_FILE, load_policy
         from stages.tokenize.store import TokenStore
         from stages.tokenize.tokenizer import load_tokenizer
-        from stages.train_wm.rollout import TEXT_EMBEDDINGS, load_world_model
+        from stages.train_wm.rollout import TEXT_EMBEDDINGS
+        from stages.wm_play import action_world_model
 
         wm_dir = ctx.input("train_wm")
-        wm = load_world_model(wm_dir, kind="action", device=ctx.device)
+        wm = action_world_model(ctx.input("wm_play"), wm_dir, device=ctx.device)
         sft_info = read_policy_json(ctx.input("sft"))
         if int(sft_info["frame_skip"]) != wm.spec.frame_skip:
             raise ValueError(f"sft.frame_skip ({sft_info['frame_skip']}) != train_wm.frame_skip ({wm.spec.frame_skip}): "
@@ -94,11 +95,9 @@ class RLInputs:
         return proprio_from_state(ep["ee_pose"][:1], ep["qpos"][:1])[0]
 
     def training_envs(self, tasks: list[str]) -> list[Environment]:
-        train = set(self.split["train"])
-        out = [e for e in self.envs if e.split == "ind" and e.task in tasks and any(i in train for i in e.episodes)]
-        if not out:
-            raise ValueError(f"no in-domain training environments for tasks {tasks}")
-        return out
+        from stages.common.environments import training_environments
+
+        return training_environments(self.envs, self.split["train"], tasks)
 
     def starts(self, envs: list[Environment], any_frame: bool = False) -> list[Start]:
         """States world-model episodes start from: the first frames of the training episodes of ``envs``,

@@ -33,10 +33,6 @@ def train(ctx, cfg, inp) -> dict:
     envs = inp.training_envs(tasks)
     metrics["train_environments"] = len(envs)
     ctx.log.info("rl: reward %s, %d training environments of tasks %s", cfg.reward, len(envs), tasks)
-    if cfg.wm_play_episodes:  # the world model everything below uses, fine-tuned on the SFT policy's play
-        from stages.rl.play import play_and_finetune
-
-        metrics.update(play_and_finetune(ctx, cfg, inp, envs))
 
     # ---- learned rewards (fitted to the rule reward of IND training episodes) ----------------------
     wanted = list(REGISTRY) if cfg.diagnostics == "all" else [cfg.reward]
@@ -125,22 +121,17 @@ def train(ctx, cfg, inp) -> dict:
 
 def replay_sim(ctx, cfg, inp, picked: list):
     """(ManiSkill env over the picked environments, rendering and controlling as collect did, their specs)."""
-    from stages.collect.catalog import read_scenes_json
-    from stages.collect.dataset import read_sim_facts
-    from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.common.sim_env import sim_over
 
-    scenes = read_scenes_json(ctx.input("collect") / "scenes.json")
-    facts = read_sim_facts(ctx.input("collect"))
-    specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction) for e in picked]
-    sim = SimTaskEnv(specs, inp.obs_fn, max_steps=cfg.max_episode_steps, action_repeat=inp.frame_skip,
-                     image_size=facts.image_size, robot_mesh=facts.robot_mesh, seed=cfg.seed)
-    return sim, specs
+    return sim_over(ctx.input("collect"), inp.obs_fn, picked, max_steps=cfg.max_episode_steps,
+                    frame_skip=inp.frame_skip, seed=cfg.seed)
 
 
 def _guard_refit(ctx, cfg, inp, envs: list, raw_env, fs_fit):
     """The callback that refits the guard on replayed imagined episodes of IND training environments."""
     from stages.rl.guard_refit import SEED_BASE, GuardRefit
-    from stages.rl.imagined import imagine_and_replay, pick_environments
+    from stages.common.environments import pick_environments
+    from stages.rl.imagined import imagine_and_replay
 
     picked = pick_environments(envs, cfg.guard_replay_envs)
 
@@ -170,9 +161,10 @@ def _imagined_precision(ctx, cfg, inp, policy, guard=None) -> dict:
     """The final policy imagines episodes from fresh simulator starts; ManiSkill replays them. With the
     env's ``guard`` an imagined success needs its confirmation, as in training; the done head alone is
     reported beside it (``imagined/<split>/head_only/...``)."""
+    from stages.common.environments import pick_environments
     from stages.rl.imagined import (PERSIST_STEPS, STRICTER_THETAS, TCP_ERROR_STEPS, imagine_and_replay,
-                                    pick_environments, precision_at, precision_head_only, precision_metrics,
-                                    tcp_error_at, token_accuracy_at)
+                                    precision_at, precision_head_only, precision_metrics, tcp_error_at,
+                                    token_accuracy_at)
 
     policy.set_training_mode(False)
     out, table = {}, {}
@@ -250,7 +242,7 @@ def _sim_vec_env(ctx, cfg, inp, envs, payout_gamma: float | None):
 
     from stages.collect.catalog import read_scenes_json
     from stages.collect.dataset import read_sim_facts
-    from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.common.sim_env import SimSpec, SimTaskEnv
 
     scenes = read_scenes_json(ctx.input("collect") / "scenes.json")
     facts = read_sim_facts(ctx.input("collect"))  # render and control as the demonstrations were recorded

@@ -128,7 +128,8 @@ def _cost_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
         mine = [r for r in runs if r.method == m]
         if not mine:
             continue
-        rows.append([LABELS[m], str(len(mine)), _joined([r.seconds.get("rl", np.nan) for r in mine]),
+        rows.append([LABELS[m], str(len(mine)), _joined([r.seconds.get("wm_play", np.nan) for r in mine]),
+                     _joined([r.seconds.get("rl", np.nan) for r in mine]),
                      _joined([r.rl_metrics.get("ppo/seconds", np.nan) for r in mine]),
                      _joined([r.rl_metrics.get("ppo/env_steps_per_second", np.nan) for r in mine], "{:.1f}"),
                      _joined([r.rl_metrics.get("ppo/terminated_fraction", np.nan) for r in mine], "{:.3f}"),
@@ -136,10 +137,12 @@ def _cost_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
     if not rows:
         return None
     note = ("Wall seconds per run (one value per point, in point order), as the stage manifests recorded them; the "
-            "rl stage includes SFT, reward heads and diagnostics besides PPO. Points may have run two at a time on "
+            "rl stage includes reward heads, diagnostics and the imagined-success check besides PPO; wm_play (the world "
+            "model's fine-tune on the SFT policy's play, which every reward point of a seed trains or checks in) is "
+            "one run per seed, listed with each of its points. Points may have run two at a time on "
             "the same cores, which inflates these times. Terminated = fraction of PPO training episodes that the "
             "reward's success signal ended (done head or simulator success).")
-    return _section("Cost per method", note, ["method", "runs", "rl stage s", "PPO s", "PPO env steps/s",
+    return _section("Cost per method", note, ["method", "runs", "wm_play s", "rl stage s", "PPO s", "PPO env steps/s",
                                               "terminated", "evaluate s"], rows)
 
 

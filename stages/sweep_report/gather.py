@@ -67,6 +67,9 @@ def gather(point: dict) -> PointRun | None:
                    snapshots=_json(rl_dir / "snapshots" / "index.json", []),
                    training=_json(rl_dir / "episodes.json", []), sft_dir=arts.get("sft"))
     run.seconds["rl"] = float(manifest.get("duration_s", float("nan")))
+    play_dir = _committed(arts.get("wm_play"))
+    if play_dir is not None:  # the world model's fine-tune on the SFT policy's play, shared by a seed's points
+        run.seconds["wm_play"] = float(_json(play_dir / "manifest.json", {}).get("duration_s", float("nan")))
     run.eval_dir = _committed(arts.get("evaluate"))
     if run.eval_dir is not None:
         run.results = _jsonl(run.eval_dir / "results.jsonl")

@@ -1,4 +1,4 @@
-"""The real pipeline, all seven stages, at toy scale, through the real CLI (one shared store).
+"""The real pipeline, all eight stages, at toy scale, through the real CLI (one shared store).
 
 Slow by nature (every stage trains or simulates for real): about ten minutes on 2 cores.
 """
@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-STAGES = ["collect", "tokenize", "train_wm", "goals", "sft", "rl", "evaluate"]
+STAGES = ["collect", "tokenize", "train_wm", "goals", "sft", "wm_play", "rl", "evaluate"]
 pytestmark = [pytest.mark.slow, pytest.mark.sim]
 
 
@@ -40,6 +40,11 @@ def artifact(store: Path, stage: str) -> Path:
     return arts[-1].parent
 
 
+def shown(store: Path, stage: str) -> Path:
+    """The artifact of ``stage`` at the toy profile's current key (``pipeline show``)."""
+    return Path(cli(store, "show", stage, "--profile", "toy").stdout.splitlines()[1].removeprefix("path: "))
+
+
 @pytest.fixture(scope="module")
 def store(tmp_path_factory) -> Path:
     store = tmp_path_factory.mktemp("toy") / "artifacts"
@@ -48,7 +53,7 @@ def store(tmp_path_factory) -> Path:
     return store
 
 
-def test_all_seven_stages_produce_their_artifacts_and_the_report(store):
+def test_all_eight_stages_produce_their_artifacts_and_the_report(store):
     ev = artifact(store, "evaluate")
     report = (ev / "report.md").read_text()
     assert "success rate" in report.lower() and "IND" in report and "OOD" in report
@@ -138,7 +143,7 @@ def test_adding_evaluation_scenes_reruns_only_evaluate(store):
 
 
 def test_same_seed_same_evaluation(store):
-    path = Path(cli(store, "show", "evaluate", "--profile", "toy").stdout.splitlines()[1].removeprefix("path: "))
+    path = shown(store, "evaluate")
     before = (path / "results.jsonl").read_text()
     proc = cli(store, "run", "--profile", "toy", "--force", "evaluate")
     assert actions(proc)[("evaluate", "ran")] == 1
@@ -151,8 +156,10 @@ def test_reward_sweep_reuses_the_shared_stages(store):
     for s in ("collect", "tokenize", "train_wm", "goals"):
         assert acts[(s, "ran")] == 0 and acts[(s, "cached")] == 1
     assert acts[("rl", "ran")] + acts[("rl", "cached")] == 12
-    # one SFT policy per seed, shared by the four reward points (seed 0's is the fixture run's)
-    assert acts[("sft", "ran")] == 2 and acts[("sft", "cached")] == 1
+    # one SFT policy and one play-tuned world model per seed, shared by the four reward points
+    # (seed 0's are the fixture run's)
+    for s in ("sft", "wm_play"):
+        assert acts[(s, "ran")] == 2 and acts[(s, "cached")] == 1, s
     out = next((store / "sweeps" / "rewards").glob("*/results.json")).parent
     table = json.loads((out / "results.json").read_text())
     assert sorted({r["rl.reward"] for r in table["rows"]}) == ["embedding", "proxy", "rule", "wm"]
@@ -164,6 +171,7 @@ def test_reward_sweep_reuses_the_shared_stages(store):
 def test_changing_an_rl_setting_does_not_rerun_sft(store):
     acts = actions(cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.gamma=0.98"))
     assert acts[("sft", "cached")] == 1 and acts[("sft", "ran")] == 0 and acts[("rl", "ran")] == 1
+    assert acts[("wm_play", "cached")] == 1 and acts[("wm_play", "ran")] == 0
 
 
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
@@ -223,17 +231,28 @@ def test_the_guard_refits_on_replayed_imagined_episodes(store):
 def test_the_world_model_is_fine_tuned_on_the_sft_policys_play(store):
     import torch
 
-    from stages.rl.play import PLAY_WM
     from stages.train_wm.rollout import CHECKPOINTS, load_net
 
-    cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.wm_play_episodes=2", "--set", "rl.wm_play_steps=3")
-    rl = artifact(store, "rl")
-    m = json.loads((rl / "metrics.json").read_text())
-    assert m["wm_play/episodes"] == 2 and 0 <= m["wm_play/successes"] <= 2
-    assert 2 <= m["wm_play/policy_steps"] <= 2 * 15  # at least one step each, at most the toy horizon
-    assert m["wm_play/train_episodes"] > 0 and m["wm_play/finetune_seconds"] > 0
-    tuned = load_net(rl / PLAY_WM).state_dict()
+    play = shown(store, "wm_play")  # the fixture run's: the toy profile plays 2 episodes, fine-tunes 3 steps
+    m = json.loads((play / "metrics.json").read_text())
+    assert m["episodes"] == 2 and 0 <= m["successes"] <= 2
+    assert 2 <= m["policy_steps"] <= 2 * 15  # at least one step each, at most the toy horizon
+    assert m["train_episodes"] > 0 and m["finetune_seconds"] > 0
+    rows = json.loads((play / "play.json").read_text())
+    assert len(rows) == 2 and sum(r["success"] for r in rows) == m["successes"]
+    tuned = load_net(play / CHECKPOINTS["action"]).state_dict()
     base = load_net(artifact(store, "train_wm") / CHECKPOINTS["action"]).state_dict()
     assert tuned.keys() == base.keys()
     assert any(not torch.equal(tuned[k], base[k]) for k in base)  # three steps moved it
-    assert "imagined/ind/imagined_done" in m  # the precision check ran, in the fine-tuned model
+    rl_inputs = json.loads((shown(store, "rl") / "manifest.json").read_text())["key_inputs"]["inputs"]
+    assert rl_inputs["wm_play"] == play.name  # PPO trained in it
+
+
+def test_without_play_rl_trains_in_train_wms_model(store):
+    acts = actions(cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "wm_play.episodes=0"))
+    assert acts[("wm_play", "ran")] == 1 and acts[("rl", "ran")] == 1 and acts[("sft", "cached")] == 1
+    play = artifact(store, "wm_play")
+    assert json.loads((play / "wm_play.json").read_text()) == {"finetuned": False, "episodes": 0}
+    assert not (play / "action_wm.pt").exists()
+    m = json.loads((artifact(store, "rl") / "metrics.json").read_text())
+    assert "imagined/ind/imagined_done" in m  # the precision check ran, in train_wm's model

@@ -11,10 +11,10 @@ from tests.engine.conftest import REPO
 ALL = ["collect", "tokenize", "train_wm", "goals", "rl", "evaluate"]
 
 
-def test_dag_of_the_shipped_pipeline_lists_seven_stages_in_order():
+def test_dag_of_the_shipped_pipeline_lists_eight_stages_in_order():
     out = subprocess.run([sys.executable, "-m", "pipeline", "dag"], cwd=REPO, capture_output=True, text=True, check=True).stdout
     names = [line.split()[1] for line in out.splitlines() if line.strip()]
-    assert names == ["collect", "tokenize", "train_wm", "goals", "sft", "rl", "evaluate"]
+    assert names == ["collect", "tokenize", "train_wm", "goals", "sft", "wm_play", "rl", "evaluate"]
 
 
 def test_dag_dot(ws):

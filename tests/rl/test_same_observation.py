@@ -14,7 +14,7 @@ pytestmark = pytest.mark.sim
 
 def test_wm_env_and_sim_env_observe_a_real_frame_identically():
     from stages.collect.sim import default_catalog
-    from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.common.sim_env import SimSpec, SimTaskEnv
 
     tok = tiny_tokenizer()
     fn = obs_fn(tok)
@@ -48,7 +48,7 @@ def test_wm_env_and_sim_env_observe_a_real_frame_identically():
 
 def test_a_sim_step_repeats_the_action_for_the_world_models_frame_skip():
     from stages.collect.sim import default_catalog
-    from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.common.sim_env import SimSpec, SimTaskEnv
 
     tok = tiny_tokenizer()
     scene = next(s for s in default_catalog().values() if s.split == "ind")
@@ -72,7 +72,7 @@ def test_a_sim_step_repeats_the_action_for_the_world_models_frame_skip():
 def test_unrendered_repeats_reach_the_same_state_as_rendered_ones():
     """The first k-1 control steps of a policy step skip the cameras; the result equals k full steps."""
     from stages.collect.sim import default_catalog
-    from stages.rl.sim_env import SimSpec, SimTaskEnv
+    from stages.common.sim_env import SimSpec, SimTaskEnv
 
     tok = tiny_tokenizer()
     scene = next(s for s in default_catalog().values() if s.split == "ind")

@@ -7,6 +7,8 @@ from typing import ClassVar
 import numpy as np
 import torch
 
+from stages.common.returns import success_return  # noqa: F401  (re-exported: every env applies it)
+
 
 @dataclass
 class StepBatch:
@@ -62,12 +64,3 @@ class RewardModule:
         if self.stateless:
             return np.asarray(self(frames), dtype=np.float64)
         raise NotImplementedError(f"reward module {self.name!r} keeps state across steps and must define along()")
-
-
-def success_return(max_step_reward: float, steps_left, gamma: float):
-    """The reward of a step that ends its episode in success: ``max_step_reward`` for that step and
-    for each of the ``steps_left`` steps it would have had until truncation, discounted by ``gamma``
-    (the value of an absorbing state that keeps paying the most any step can). Scalar or array."""
-    k = np.maximum(np.asarray(steps_left, dtype=np.float64), 0.0) + 1.0  # this step and the ones left
-    total = k if gamma == 1.0 else (1.0 - gamma**k) / (1.0 - gamma)
-    return max_step_reward * total

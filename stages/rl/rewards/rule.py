@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from stages.common.sim_env import RULE_MAX_STEP_REWARD
 from stages.rl.rewards.base import RewardModule, RewardParts, StepBatch
 
 
 class RuleReward(RewardModule):
     name = "rule"
     env = "sim"
-    max_step_reward = 1.0
+    max_step_reward = RULE_MAX_STEP_REWARD
 
     @classmethod
     def build(cls, parts: RewardParts, cfg, num_envs: int) -> "RuleReward":

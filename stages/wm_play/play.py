@@ -1,26 +1,13 @@
-"""The action world model fine-tuned on the SFT policy's own play (``rl.wm_play_episodes``).
-
-Every collected episode is planner-made (optimal, perturbed, near-miss), so the world model has never
-watched a learned policy act: under the policy's actions it imagines demonstration-like progress that
-does not happen, and most imagined successes are not real (docs/RESULTS.md). With ``wm_play_episodes``
-> 0 the SFT policy first plays that many episodes in ManiSkill on the IND training environments,
-recorded at the world model's step with their failures; a copy of the action world model is then
-fine-tuned on its own training episodes plus the play (listed ``wm_play_weight`` times), and
-everything after it in the stage (reward heads, diagnostics, PPO, the precision check) uses the copy.
-Like the guard's replays this spends simulator steps before PPO, on training environments only: a
-departure from the paper's simulator-free training, off by default.
-"""
+"""The SFT policy's play, recorded as world-model training episodes, and the fine-tune on it."""
 from __future__ import annotations
 
 import copy
 import json
-import time
 
 import numpy as np
 import torch
 
 PLAY_SEED = 5_000_000  # play seeds: apart from training (< 1e6), evaluation and the precision check (3e6)
-PLAY_WM = "play_action_wm.pt"  # the fine-tuned action world model, in the rl artifact
 
 
 @torch.no_grad()
@@ -76,39 +63,3 @@ def finetune_on_play(wm, train_wm_dir, train_eps: list, play: list, *, steps: in
                                progress=progress, log=log, desc="play_wm")
     tuned.net.eval()
     return tuned, result
-
-
-def play_and_finetune(ctx, cfg, inp, envs: list) -> dict:
-    """Let the SFT policy play ``cfg.wm_play_episodes`` training environments, fine-tune the world
-    model on it, put the copy in ``inp.wm`` and save it; returns the ``wm_play/...`` metrics."""
-    from stages.rl.imagined import pick_environments
-    from stages.rl.train import replay_sim
-    from stages.train_wm.data import load_episodes
-    from stages.train_wm.rollout import save_world_model
-
-    picked = pick_environments(envs, cfg.wm_play_episodes)
-    sim, specs = replay_sim(ctx, cfg, inp, picked)
-    seeds = [PLAY_SEED + 1000 * cfg.seed + i for i in range(len(specs))]
-    t0 = time.perf_counter()
-    inp.sft_policy.set_training_mode(False)
-    try:
-        with ctx.progress(len(specs), "rl: SFT policy plays in ManiSkill", unit="ep") as bar:
-            play = play_episodes(inp.sft_policy, sim, specs, seeds, cfg.max_episode_steps, bar)
-    finally:
-        sim.close()
-    t_play = time.perf_counter() - t0
-    train = set(inp.split["train"])
-    train_eps = [e for e in load_episodes(ctx.input("collect"), ctx.input("tokenize"), frame_skip=inp.frame_skip)
-                 if e.episode_id in train]
-    with ctx.progress(cfg.wm_play_steps, "rl: world model on the play", unit="step") as bar:
-        inp.wm, result = finetune_on_play(inp.wm, ctx.input("train_wm"), train_eps, play, steps=cfg.wm_play_steps,
-                                          lr=cfg.wm_play_lr, weight=cfg.wm_play_weight, device=inp.device,
-                                          progress=bar, log=ctx.log)
-    save_world_model(inp.wm.net, ctx.out / PLAY_WM,
-                     {"decode_steps": inp.wm.decode_steps, "temperature": inp.wm.temperature})
-    out = {"wm_play/episodes": len(play), "wm_play/successes": int(sum(e.done[-1] > 0 for e in play)),
-           "wm_play/policy_steps": int(sum(e.length for e in play)), "wm_play/train_episodes": len(train_eps),
-           "wm_play/play_seconds": t_play, "wm_play/finetune_seconds": result["seconds"],
-           **{f"wm_play/final_{k}": v for k, v in result["final"].items()}}
-    ctx.log.info("rl: world model fine-tuned on the SFT policy's play: %s", out)
-    return out

@@ -8,7 +8,7 @@ policy step means the same in the simulator as in the world model; the reward is
 Only the last control step of a policy step renders the cameras (unless ``keep_frames``): the others
 are never observed (a policy step of 4 control steps: 64 ms rendering each, 32 ms rendering the
 last). With ``payout_gamma`` set, a successful step is paid the rule reward's maximum (1) for
-itself and each step left (``stages.rl.rewards.success_return``). Each env samples one of its
+itself and each step left (``stages.common.returns.success_return``). Each env samples one of its
 assigned (task, scene) environments at reset; simulator instances are created lazily and cached
 (building one costs seconds), at most ``cache_size`` per env.
 """
@@ -16,15 +16,17 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 
 from stages.common.action_space import executed
 from stages.common.proprio import proprio_from_sim_state
-from stages.rl.rewards.base import success_return
-from stages.rl.rewards.rule import RuleReward
+from stages.common.returns import success_return
 from stages.sft.observation import ObservationFn, index_obs
+
+RULE_MAX_STEP_REWARD = 1.0  # the task's dense reward is normalised to [0, 1], 1 exactly at success
 
 
 @dataclass(frozen=True)
@@ -116,7 +118,7 @@ class SimTaskEnv(gym.Env):
         success = bool(info["success"])
         truncated = (self.t >= self.max_steps or bool(env_truncated)) and not success
         if success and self.payout_gamma is not None:
-            reward = float(success_return(RuleReward.max_step_reward, self.max_steps - self.t, self.payout_gamma))
+            reward = float(success_return(RULE_MAX_STEP_REWARD, self.max_steps - self.t, self.payout_gamma))
         return self._observe(raw), float(reward), success, truncated, {"success": success, "env": self.spec_now.key}
 
     def _unobserved_control_step(self, a: np.ndarray) -> bool:
@@ -147,3 +149,17 @@ class SimTaskEnv(gym.Env):
         for env in self._envs.values():
             env.close()
         self._envs.clear()
+
+
+def sim_over(collect_dir, obs_fn: ObservationFn, envs: list, *, max_steps: int, frame_skip: int, seed: int):
+    """(a ``SimTaskEnv`` over ``envs`` (``stages.goals.environments.Environment``), rendering and
+    controlling as collect did, their ``SimSpec`` in order)."""
+    from stages.collect.catalog import read_scenes_json
+    from stages.collect.dataset import read_sim_facts
+
+    scenes = read_scenes_json(Path(collect_dir) / "scenes.json")
+    facts = read_sim_facts(collect_dir)
+    specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction) for e in envs]
+    sim = SimTaskEnv(specs, obs_fn, max_steps=max_steps, action_repeat=frame_skip, image_size=facts.image_size,
+                     robot_mesh=facts.robot_mesh, seed=seed)
+    return sim, specs
