@@ -20,10 +20,11 @@ class PolicyCheck:
 
 def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_path: Path, *, split: str,
                envs: int, steps: int, keep_frames: bool = False, decode_steps: int | None = None,
-               temperature: float | None = None) -> PolicyCheck:
+               temperature: float | None = None, wm_play: Path | None = None) -> PolicyCheck:
     """``envs`` environments of ``split`` (round-robin over the SFT policy's tasks), on CPU.
 
     decode_steps, temperature: the world model's rollout decoding (None: the train_wm artifact's own).
+    wm_play: a wm_play artifact: its fine-tuned weights replace train_wm's (the model rl trained in).
     """
     from stages.collect.catalog import read_scenes_json
     from stages.collect.dataset import read_sim_facts
@@ -39,6 +40,10 @@ def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_
     tok = load_tokenizer(tokenize, "cpu")
     obs_fn = ObservationFn(tok, json.loads((sft / TEXT_EMBEDDINGS).read_text()))
     wm = load_world_model(train_wm, "action", "cpu", decode_steps=decode_steps, temperature=temperature)
+    if wm_play is not None:
+        from stages.wm_play import action_world_model
+
+        wm.net.load_state_dict(action_world_model(wm_play, train_wm).net.state_dict())
     tasks = read_policy_json(sft)["tasks"]
     scenes, facts = read_scenes_json(collect / "scenes.json"), read_sim_facts(collect)
     picked = pick_environments([e for e in list_environments(collect) if e.split == split and e.task in tasks], envs)
@@ -52,6 +57,10 @@ def add_artifact_args(ap, names=("collect", "tokenize", "train_wm", "sft")) -> N
     """Positional artifact directories, in pipeline order."""
     for name in names:
         ap.add_argument(name, type=Path, help=f"a committed {name} artifact directory")
+    if "train_wm" in names:
+        ap.add_argument("--wm-play", type=Path, default=None,
+                        help="a committed wm_play artifact: imagine in its fine-tuned action world model, the one "
+                             "the rl stage trains in (default: train_wm's as it is)")
 
 
 def add_decoding_options(ap) -> None:

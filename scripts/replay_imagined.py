@@ -49,7 +49,7 @@ def main() -> None:
 
     path = {"ppo": args.rl / "policy.zip", "sft": args.sft / POLICY_FILE}.get(args.policy, args.rl / args.policy)
     c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, path, split=args.split, envs=args.envs,
-                   steps=args.steps, decode_steps=args.decode_steps, temperature=args.temperature)
+                   steps=args.steps, decode_steps=args.decode_steps, temperature=args.temperature, wm_play=args.wm_play)
     tok, obs_fn, wm, policy, specs, sim = c.tok, c.obs_fn, c.wm, c.policy, c.specs, c.sim
     record = {} if args.strip else None
     guard = load_guard(args.rl / "guard.pt", args.theta) if args.guard else None

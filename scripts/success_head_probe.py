@@ -71,7 +71,7 @@ def main() -> None:
     for sp in ("ind", "ood"):
         sft_policy = args.policy or args.sft / POLICY_FILE
         c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, sft_policy, split=sp, envs=args.envs,
-                       steps=args.steps)
+                       steps=args.steps, wm_play=args.wm_play)
         record = {}
         try:
             rows = imagine_and_replay(c.policy, c.wm, c.tok, c.obs_fn, c.sim, c.specs,

@@ -45,7 +45,7 @@ def main() -> None:
 
     c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, args.policy or args.sft / POLICY_FILE,
                    split=args.split, envs=args.envs, steps=args.steps, keep_frames=True,
-                   decode_steps=args.decode_steps, temperature=args.temperature)
+                   decode_steps=args.decode_steps, temperature=args.temperature, wm_play=args.wm_play)
     tok, obs_fn, wm, policy, specs, sim = c.tok, c.obs_fn, c.wm, c.policy, c.specs, c.sim
     shown = list(range(0, args.steps + 1, args.every))
     rows, summary = [], []

@@ -110,7 +110,7 @@ def main() -> None:
 
     path = {"ppo": args.rl / "policy.zip", "sft": args.sft / POLICY_FILE}[args.policy]
     c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, path, split=args.split, envs=args.envs,
-                   steps=args.steps)
+                   steps=args.steps, wm_play=args.wm_play)
     if c.tok.grid[0] != 2 * c.tok.grid[1]:
         raise SystemExit(f"this probe needs the per-view tokenizer (two stacked grids), got grid {c.tok.grid}")
     cls = confident_rollout_class()

@@ -97,7 +97,7 @@ def main() -> None:
     from stages.train_wm.rollout import WorldModel, load_net
 
     c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, args.policy, split=args.split,
-                   envs=args.envs, steps=args.steps)
+                   envs=args.envs, steps=args.steps, wm_play=args.wm_play)
     import stages.sft.policy as sft_policy
 
     record: dict = {}

@@ -89,6 +89,10 @@ def main() -> None:
     ds, store = Dataset(args.collect), TokenStore(args.tokenize)
     obs_fn = ObservationFn(load_tokenizer(args.tokenize, "cpu"), json.loads((args.sft / TEXT_EMBEDDINGS).read_text()))
     wm = load_world_model(args.train_wm, "action", "cpu")
+    if args.wm_play is not None:
+        from stages.wm_play import action_world_model
+
+        wm = action_world_model(args.wm_play, args.train_wm)
     if int(wm.spec.frame_skip) != int(cfg["frame_skip"]):
         raise ValueError(f"world model frame_skip {wm.spec.frame_skip} != SFT frame_skip {cfg['frame_skip']}")
     load = lambda ids: [load_demo(ds, store, i, cfg["frame_skip"], cfg["retime_min_move"],  # noqa: E731

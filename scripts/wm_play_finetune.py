@@ -13,9 +13,9 @@ times). It writes a copy of the train_wm artifact directory with the new ``actio
     PYTHONPATH=. .venv/bin/python scripts/wm_play_finetune.py <collect> <tokenize> <train_wm> <sft> --out DIR \\
         [--episodes 96] [--max-steps 50] [--steps 1000] [--lr 3e-4] [--play-weight 2] [--policy FILE]
 
-``--policy <rl>/policy.zip`` lets a PPO policy play instead of the SFT policy; with a ``train_wm``
-directory whose ``action_wm.pt`` is a wm_play artifact's ``action_wm.pt`` (symlink the rest), this is
-a second round of play: the world model sees where the policy trained in it goes wrong.
+``--policy <rl>/policy.zip`` lets a PPO policy play instead of the SFT policy; with ``--wm-play <wm_play>``
+(the world model that policy trained in) this is a second round of play: the world model sees where
+the policy trained in it goes wrong.
 
 ``--episodes 0`` is the control: the same fine-tune on the training episodes alone (no play), which
 separates what the play data do from what the extra training steps do. The ``wm_play`` stage does the
@@ -57,7 +57,7 @@ def main() -> None:
     if args.episodes < 0:
         raise ValueError(f"--episodes must be >= 0, got {args.episodes}")
     c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, args.policy or args.sft / POLICY_FILE, split="ind",
-                   envs=max(args.episodes, 1), steps=args.max_steps)
+                   envs=max(args.episodes, 1), steps=args.max_steps, wm_play=args.wm_play)
     t0 = time.perf_counter()
     try:
         eps = play_episodes(c.policy, c.sim, c.specs[:args.episodes], [args.seed + i for i in range(args.episodes)],
