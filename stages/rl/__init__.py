@@ -100,6 +100,9 @@ class Config(BaseModel):
         "bf16 matmuls >= 1.5x faster than fp32 (measured at start), else fp32 (stages.common.precision; same "
         "token accuracy as fp32 on held-out rollouts, benchmarks/wm_precision.py)")
     sim_envs: int = Field(2, ge=1, description="simulator environments for reward: rule")
+    rule_terms: Literal["dense", "success"] = Field(
+        "dense", description="reward: rule pays dense: the task's dense reward (reach, grasp, near the target) and "
+        "success; success: success alone, 0 on every other step (stages/rl/success_only.py)")
     # PPO
     total_timesteps: int = Field(20000, ge=1, description="PPO environment steps")
     n_steps: int = Field(64, ge=2, description="rollout length per env per PPO update")
@@ -142,6 +145,13 @@ class Config(BaseModel):
         if self.guard_replay_rounds and not self.guard:
             raise ValueError(f"guard_replay_rounds={self.guard_replay_rounds} refits the guard, but guard is false: "
                              "set rl.guard=true as well")
+        return self
+
+    @model_validator(mode="after")
+    def _rule_terms_need_rule(self) -> "Config":
+        if self.rule_terms != "dense" and self.reward != "rule":
+            raise ValueError(f"rule_terms={self.rule_terms!r} chooses what the simulator's reward pays, but reward is "
+                             f"{self.reward!r}: set rl.reward=rule or leave rule_terms at dense")
         return self
 
     @model_validator(mode="after")

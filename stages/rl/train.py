@@ -14,6 +14,7 @@ from stages.rl.ppo import make_ppo, normalized_rewards
 from stages.rl.rewards import REGISTRY, GoalDistance, RewardParts, WMReward
 from stages.rl.rewards.fit import fit_embedding_head, fit_proxy, frame_set
 from stages.rl.self_imitation import SelfImitationRecorder
+from stages.rl.success_only import SuccessOnly
 from stages.rl.training import TrainingLog, plot_training
 from stages.rl.wm_env import WorldModelVecEnv
 from stages.sft.policy import flat_params
@@ -249,7 +250,10 @@ def _sim_vec_env(ctx, cfg, inp, envs, payout_gamma: float | None):
     specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction, inp.goal_index[e.env_id]) for e in envs]
     n = min(cfg.sim_envs, len(specs))
     groups = [specs[i::n] for i in range(n)]
-    return DummyVecEnv([lambda g=g, i=i: SimTaskEnv(g, inp.obs_fn, max_steps=cfg.max_episode_steps, seed=cfg.seed + i,
-                                                      action_repeat=inp.frame_skip, image_size=facts.image_size,
-                                                      robot_mesh=facts.robot_mesh, payout_gamma=payout_gamma)
-                        for i, g in enumerate(groups)])
+
+    def make(g, i):
+        env = SimTaskEnv(g, inp.obs_fn, max_steps=cfg.max_episode_steps, seed=cfg.seed + i, action_repeat=inp.frame_skip,
+                         image_size=facts.image_size, robot_mesh=facts.robot_mesh, payout_gamma=payout_gamma)
+        return SuccessOnly(env) if cfg.rule_terms == "success" else env
+
+    return DummyVecEnv([lambda g=g, i=i: make(g, i) for i, g in enumerate(groups)])

@@ -1,12 +1,14 @@
 """Reward modules: sign of the dense reward, when the sparse reward fires, return scales."""
 from __future__ import annotations
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 
 from stages.rl import Config
 from stages.rl.rewards import REGISTRY, GoalDistance, RewardParts, StepBatch, WMReward, success_return
+from stages.rl.success_only import SuccessOnly
 from tests.rl.tiny import frames
 
 
@@ -127,3 +129,29 @@ def test_bf16_lpips_stays_close_to_fp32_and_leaves_the_shared_network_alone(scen
     assert low.net is not get_lpips("cpu") and get_lpips("cpu").convs[0].weight.is_contiguous()
     assert np.abs(bf16 - fp32).max() < 0.02, (fp32, bf16)
     assert np.all(np.diff(bf16) < 0)  # the order along the path survives
+
+
+class _Scripted(gym.Env):
+    """Pays 0.7 per step (the dense reward next to the goal), succeeds at the third step with 5."""
+
+    observation_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+    action_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        self.t = 0
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        success = self.t == 3
+        return np.zeros(1, np.float32), (5.0 if success else 0.7), success, False, {"success": success}
+
+
+def test_success_only_rule_pays_the_successful_step_and_nothing_else():
+    env = SuccessOnly(_Scripted())
+    env.reset()
+    rewards = [env.step(np.zeros(1, np.float32))[1] for _ in range(3)]
+    assert rewards == [0.0, 0.0, 5.0]
+    Config(reward="rule", rule_terms="success")
+    with pytest.raises(ValueError, match="rule_terms"):
+        Config(reward="wm", rule_terms="success")
