@@ -152,6 +152,11 @@ def test_success_only_rule_pays_the_successful_step_and_nothing_else():
     env.reset()
     rewards = [env.step(np.zeros(1, np.float32))[1] for _ in range(3)]
     assert rewards == [0.0, 0.0, 5.0]
-    Config(reward="rule", rule_terms="success")
+    cfg = Config(reward="rule", rule_terms="success")
+    recorded = np.array([0.3, 0.8, 1.0])  # normalised dense reward of an episode: 1 exactly at success
+    batch = StepBatch(torch.zeros(3, 1, 1, dtype=torch.long), torch.zeros(3), torch.zeros(3, 4), np.zeros(3, dtype=int),
+                      rule_reward=recorded)
+    assert REGISTRY["rule"].build(RewardParts(), cfg, 3)(batch).tolist() == [0.0, 0.0, 1.0]  # diagnostics as trained
+    assert REGISTRY["rule"].build(RewardParts(), Config(reward="rule"), 3)(batch).tolist() == recorded.tolist()
     with pytest.raises(ValueError, match="rule_terms"):
         Config(reward="wm", rule_terms="success")
