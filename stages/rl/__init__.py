@@ -101,8 +101,10 @@ class Config(BaseModel):
         "token accuracy as fp32 on held-out rollouts, benchmarks/wm_precision.py)")
     sim_envs: int = Field(2, ge=1, description="simulator environments for reward: rule")
     rule_terms: Literal["dense", "success"] = Field(
-        "dense", description="reward: rule pays dense: the task's dense reward (reach, grasp, near the target) and "
-        "success; success: success alone, 0 on every other step (stages/rl/success_only.py)")
+        "success", description="what reward: rule pays (other rewards ignore it); success: success alone, 0 on "
+        "every other step (stages/rl/success_only.py); dense: the task's dense reward (reach, grasp, near the "
+        "target) and success. success lifted PPO in ManiSkill above SFT in domain over 3 seeds where dense did not "
+        "(docs/RESULTS.md)")
     # PPO
     total_timesteps: int = Field(20000, ge=1, description="PPO environment steps")
     n_steps: int = Field(64, ge=2, description="rollout length per env per PPO update")
@@ -148,13 +150,6 @@ class Config(BaseModel):
         return self
 
     @model_validator(mode="after")
-    def _rule_terms_need_rule(self) -> "Config":
-        if self.rule_terms != "dense" and self.reward != "rule":
-            raise ValueError(f"rule_terms={self.rule_terms!r} chooses what the simulator's reward pays, but reward is "
-                             f"{self.reward!r}: set rl.reward=rule or leave rule_terms at dense")
-        return self
-
-    @model_validator(mode="after")
     def _branches_need_the_world_model(self) -> "Config":
         if self.branch_horizon and REGISTRY[self.reward].env != "wm":
             raise ValueError(f"branch_horizon={self.branch_horizon} starts world-model episodes mid-way, but reward "
@@ -165,8 +160,8 @@ class Config(BaseModel):
     def _return_scales(self) -> "Config":
         # without the payout, success ends the episode and forfeits the per-step reward that lingering
         # keeps earning: 131 of 266 rule episodes of one seed hovered by the object (docs/rl.md, "Success is worth the most")
-        if self.success_payout:
-            return self
+        if self.success_payout or (self.reward == "rule" and self.rule_terms == "success"):
+            return self  # success alone pays nothing for lingering
         if self.reward != "wm":
             raise ValueError(f"reward {self.reward!r} with success_payout false: its per-step reward is positive "
                              "next to the goal, so lingering until truncation out-earns finishing; keep the payout")
