@@ -8,7 +8,7 @@ frames composed into one:
 
 * arm dims 0..5 (delta position, delta rotation, normalised): their sum divided by ``k``, so that
   repeating the composed action ``k`` times (what the simulator does with ``action_repeat = k``,
-  ``stages.rl.sim_env``) moves the end effector by the same total delta (exact for positions to
+  ``stages.common.sim_env``) moves the end effector by the same total delta (exact for positions to
   first order, approximate for the small Euler-angle rotations);
 * gripper dim 6 (an absolute open / close target): the last one of the block.
 

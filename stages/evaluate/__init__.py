@@ -13,7 +13,7 @@ Inputs:
     tokenize -- the tokenizer (the policy's observation function)
     train_wm -- the action WM (extreme-action figure), its split
     sft -- sft_policy.pt, text embeddings (instructions)
-    rl -- policy.zip, snapshots/, rl.json (reward module),
+    rl -- policy.zip, snapshots/, rl.json (reward module, method),
           training.png, reward_diagnostics.png
 
 Outputs:
@@ -80,7 +80,7 @@ def run(ctx) -> None:
     cfg: Config = ctx.config
     rl_dir = ctx.input("rl")
     policy = read_policy_json(ctx.input("sft"))  # the facts the sft stage fixed: tasks, control steps per policy step
-    facts = {"reward": read_rl_facts(rl_dir)["reward"], "tasks": policy["tasks"], "frame_skip": int(policy["frame_skip"])}
+    facts = {"method": read_rl_facts(rl_dir)["method"], "tasks": policy["tasks"], "frame_skip": int(policy["frame_skip"])}
     jobs = build_jobs(ctx, cfg, facts)
     snaps = snapshot_jobs(ctx, cfg, facts)
     ctx.log.info("evaluate: %d jobs (%d episodes) + %d snapshot jobs", len(jobs), sum(len(j.seeds) for j in jobs), len(snaps))

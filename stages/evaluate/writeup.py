@@ -11,23 +11,25 @@ from stages.evaluate.report import (SPLIT_NAMES, html_table, image_section, mark
 from stages.evaluate.stats import wilson
 
 METHODS = {
-    "rule": "PPO in ManiSkill (rule reward)",
+    "rule": "PPO in ManiSkill (rule reward: success alone)",
+    "rule_dense": "PPO in ManiSkill (rule reward: the task's dense reward)",
     "wm": "PPO in world model (WM reward, ours)",
     "embedding": "PPO in world model (embedding reward head)",
     "proxy": "PPO in world model (proxy reward model)",
 }
 
 
-def method_label(policy: str, reward: str) -> str:
-    return "Supervised finetune (SFT)" if policy == "sft" else METHODS[reward]
+def method_label(policy: str, method: str) -> str:
+    """A table row's name: SFT, or the rl stage's method (``stages.rl.method_of``)."""
+    return "Supervised finetune (SFT)" if policy == "sft" else METHODS[method]
 
 
 def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
     out = ctx.out
-    reward, tasks = facts["reward"], list(facts["tasks"])
+    method, tasks = facts["method"], list(facts["tasks"])
     main = [r for r in results if "@" not in r["policy"]]
     counts = tally(main)
-    metrics: dict = {"reward": reward, "tasks": tasks, "episodes_per_cell": cfg.episodes, "max_steps": cfg.max_steps,
+    metrics: dict = {"method": method, "tasks": tasks, "episodes_per_cell": cfg.episodes, "max_steps": cfg.max_steps,
                      "frame_skip": int(facts["frame_skip"]),
                      "extra_scenes": len(cfg.extra_scenes)}
     for (policy, task, split), (k, n) in sorted(counts.items()):
@@ -36,7 +38,7 @@ def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
         metrics.update({base: p, f"{base}_lo": lo, f"{base}_hi": hi, f"{base}_n": n})
 
     splits = [s for s in cfg.splits if any(k[2] == s for k in counts)]
-    rows = [(method_label(p, reward), p) for p in cfg.policies]
+    rows = [(method_label(p, method), p) for p in cfg.policies]
     header, body = success_table(counts, rows, tasks, splits)
     table_name = "Table 1 layout: success rate in the simulator" if len(tasks) == 1 else \
         f"Table 2 layout: one multi-task policy ({', '.join(tasks)})"
@@ -62,7 +64,7 @@ def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
                 metrics[f"snapshots/{label}/{split}"] = k / n
     figs = []
     if any(len(v) > 1 for v in pts.values()):
-        plot_success_vs_time(pts, out / "success_vs_time.png", f"{METHODS[reward]}: success vs training time")
+        plot_success_vs_time(pts, out / "success_vs_time.png", f"{METHODS[method]}: success vs training time")
         figs.append("success_vs_time.png")
     if figs:
         sections.append(("Success vs training wall time (Fig. 2)", *image_section(figs)))
@@ -77,7 +79,7 @@ def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
         if "frames" in r:
             name = f"rollout_{r['policy']}_{r['split']}.gif"
             write_gif(r["frames"], out / name)
-            gifs.append((name, f"{method_label(r['policy'], reward)}, {SPLIT_NAMES[r['split']]}: {r['instruction']} "
+            gifs.append((name, f"{method_label(r['policy'], method)}, {SPLIT_NAMES[r['split']]}: {r['instruction']} "
                                f"({'success' if r['success'] else 'failure'}, {r['steps']} steps)"))
     if gifs:
         md = "\n\n".join(f"{cap}\n\n![{n}]({n})" for n, cap in gifs)
@@ -87,7 +89,7 @@ def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
     extreme = _extreme_actions(ctx, out)
     if extreme:
         sections.append(("The action world model under extreme actions (Fig. 9)", *image_section([extreme])))
-    write_report(out, f"RoboScape-R evaluation: reward = {reward}", sections)
+    write_report(out, f"RoboScape-R evaluation: {METHODS[method]}", sections)
     return metrics
 
 

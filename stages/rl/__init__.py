@@ -29,7 +29,8 @@ Outputs:
     tensorboard/        episode return / length and PPO update statistics, live (``stages.common.curves``)
     reward_diagnostics.png  each module's reward along held-out successful episodes, IND and OOD
     rl.json             the facts this stage fixes, read by evaluate and the sweep report through
-                        ``read_rl_facts``: the reward module and whether success pays the steps left
+                        ``read_rl_facts``: the reward module, whether success pays the steps left,
+                        what ``rule`` pays (``rule_terms``) and the method label key (``method_of``)
     imagined.json       per split, the final policy's imagined episodes replayed in ManiSkill: where
                         the done head fired and whether the simulator agreed (``stages.rl.imagined``)
     metrics.json        PPO summary, env steps/s, policy parameter change from SFT, diagnostics
@@ -182,16 +183,27 @@ def run(ctx) -> None:
         torch.set_num_threads(1)
     inputs = RLInputs.load(ctx, cfg)
     metrics = train(ctx, cfg, inputs)
-    (ctx.out / RL_JSON).write_text(json.dumps({"reward": cfg.reward, "success_payout": cfg.success_payout}) + "\n")
+    facts = {"reward": cfg.reward, "success_payout": cfg.success_payout,
+             "rule_terms": cfg.rule_terms if cfg.reward == "rule" else None, "method": method_of(cfg.reward, cfg.rule_terms)}
+    (ctx.out / RL_JSON).write_text(json.dumps(facts) + "\n")
     ctx.write_metrics(metrics)
 
 
+def method_of(reward: str, rule_terms: str) -> str:
+    """The method a run stands for in tables: the reward module, with ``rule`` split by what it pays
+    (``rule``: success alone, the default; ``rule_dense``: the task's dense reward)."""
+    return "rule_dense" if reward == "rule" and rule_terms == "dense" else reward
+
+
 def read_rl_facts(rl_dir: str | Path) -> dict:
-    """The rl artifact's ``rl.json`` (reward module, success payout), with a clear error."""
+    """The rl artifact's ``rl.json`` (reward module, success payout, rule terms, method), with a clear error."""
     path = Path(rl_dir) / RL_JSON
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: is {rl_dir} a committed rl artifact of this version?")
-    return json.loads(path.read_text())
+    facts = json.loads(path.read_text())
+    # rl.json before rule_terms existed: rule paid the task's dense reward then
+    facts.setdefault("method", method_of(facts["reward"], facts.get("rule_terms") or "dense"))
+    return facts
 
 
-__all__ = ["Config", "run", "read_rl_facts", "REWARDS", "RL_JSON"]
+__all__ = ["Config", "run", "read_rl_facts", "method_of", "REWARDS", "RL_JSON"]

@@ -10,7 +10,7 @@ from typing import Any
 @dataclass
 class PointRun:
     label: str  # short, from the point's axis values: 'reward wm, seed 0'
-    method: str  # the rl stage's reward module: wm / rule / embedding / proxy
+    method: str  # the rl stage's method (stages.rl.method_of): wm / rule / rule_dense / embedding / proxy
     seed: Any  # the rl stage's seed
     tasks: list[str]
     rl_metrics: dict = field(default_factory=dict)
@@ -50,6 +50,15 @@ def _short(v: Any) -> str:
     return "+".join(map(str, v)) if isinstance(v, (list, tuple)) else str(v)
 
 
+def _method(facts: dict, config: dict) -> str:
+    """The rl stage's published method (``stages.rl.method_of``); older artifacts: from its reward and config."""
+    from stages.rl import method_of
+    if "method" in facts:
+        return facts["method"]
+    reward = facts.get("reward", config.get("reward", "?"))
+    return method_of(reward, config.get("rule_terms", "dense"))
+
+
 def gather(point: dict) -> PointRun | None:
     """``point`` as the engine passes it ({values, label, artifacts}) -> a PointRun, None without rl."""
     arts = point["artifacts"]
@@ -61,7 +70,7 @@ def gather(point: dict) -> PointRun | None:
     metrics = _json(rl_dir / "metrics.json", {})
     short = ", ".join(f"{k.rsplit('.', 1)[-1]} {_short(v)}" for k, v in point["values"].items())
     facts = _json(rl_dir / "rl.json", {})  # what the rl stage published (older artifacts: its config)
-    run = PointRun(label=short or point["label"], method=facts.get("reward", config.get("reward", "?")),
+    run = PointRun(label=short or point["label"], method=_method(facts, config),
                    seed=config.get("seed", point["values"].get("rl.seed")),
                    tasks=_tasks(arts.get("sft")), rl_metrics=metrics, rl_dir=rl_dir,
                    snapshots=_json(rl_dir / "snapshots" / "index.json", []),

@@ -8,19 +8,24 @@ from pathlib import Path
 import numpy as np
 
 from stages.evaluate.report import write_gif
+from stages.rl import method_of
 from stages.sweep_report import report
 
 TASKS = ["push", "pull"]
 
 
 def _point(root: Path, reward: str, seed: int, ppo_wins: int, sft_wins: int, snap_wins: int,
-           evaluated: bool = True, tasks: list[str] = TASKS) -> dict:
-    """A committed rl (and evaluate) artifact: 4 episodes per (policy, split), tasks alternating."""
-    rl = root / f"rl-{reward}-{seed}"
+           evaluated: bool = True, tasks: list[str] = TASKS, rule_terms: str = "success",
+           rl_json: dict | None = None) -> dict:
+    """A committed rl (and evaluate) artifact: 4 episodes per (policy, split), tasks alternating.
+    ``rl_json`` replaces what the rl stage publishes (an older artifact's)."""
+    rl = root / f"rl-{reward}-{rule_terms}-{seed}"
     (rl / "snapshots").mkdir(parents=True)
     (rl / "manifest.json").write_text(json.dumps({"duration_s": 100.0 + seed, "key_inputs": {
         "config": {"seed": seed, "reward": reward, "tasks": tasks}}}))
-    (rl / "rl.json").write_text(json.dumps({"reward": reward, "success_payout": True}))
+    facts = {"reward": reward, "success_payout": True, "rule_terms": rule_terms if reward == "rule" else None,
+             "method": method_of(reward, rule_terms)}
+    (rl / "rl.json").write_text(json.dumps(facts if rl_json is None else rl_json))
     (rl / "metrics.json").write_text(json.dumps({"ppo/seconds": 50.0,
                                                  "ppo/env_steps_per_second": 40.0, "ppo/terminated_fraction": 0.1,
                                                  "diagnostics/ind/wm/spearman_progress": 0.5 + seed / 10}))
@@ -34,7 +39,7 @@ def _point(root: Path, reward: str, seed: int, ppo_wins: int, sft_wins: int, sna
         (sft / "policy.json").write_text(json.dumps({"tasks": tasks, "frame_skip": 4}))
     arts = {"rl": rl, "sft": sft}
     if evaluated:
-        ev = root / f"ev-{reward}-{seed}"
+        ev = root / f"ev-{reward}-{rule_terms}-{seed}"
         ev.mkdir()
         (ev / "manifest.json").write_text(json.dumps({"duration_s": 20.0}))
         rows = []
@@ -65,7 +70,7 @@ def test_pooled_counts_sft_once_per_seed_and_figures(tmp_path):
     assert "0.50 [0.22, 0.78] (4/8)" in rows["PPO in world model (WM reward, ours)"]
     assert "(3/4)" in rows["PPO in world model (WM reward, ours)"]
     # rule: only seed 0 was evaluated
-    assert "1.00 [0.51, 1.00] (4/4)" in rows["PPO in ManiSkill (rule reward)"]
+    assert "1.00 [0.51, 1.00] (4/4)" in rows["PPO in ManiSkill (rule reward: success alone)"]
     # SFT: seeds 0 and 1 once each (not once per point): 2 + 1 of 8
     assert "(3/8)" in rows["Supervised finetune (SFT)"] and "(5/12)" not in rows["Supervised finetune (SFT)"]
     assert "Table 2 layout" in md and "Table 1 layout" not in md
@@ -76,6 +81,20 @@ def test_pooled_counts_sft_once_per_seed_and_figures(tmp_path):
                  "extreme_actions.png", "rollouts.png", "report.html"):
         assert (out / name).is_file(), name
         assert name in md or name == "report.html"
+
+
+def test_rule_rows_follow_what_the_rule_reward_paid(tmp_path):
+    """Success-only and dense rule runs are separate rows; an older rl.json (no method) reads as dense."""
+    points = [_point(tmp_path, "rule", 0, ppo_wins=4, sft_wins=2, snap_wins=0),
+              _point(tmp_path, "rule", 0, ppo_wins=1, sft_wins=2, snap_wins=0, rule_terms="dense"),
+              _point(tmp_path, "rule", 1, ppo_wins=2, sft_wins=1, snap_wins=0, rule_terms="old",
+                     rl_json={"reward": "rule", "success_payout": True})]
+    out = tmp_path / "out"
+    out.mkdir()
+    table = report(points, out).read_text().split("## PPO minus SFT")[0]
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in table.splitlines() if line.startswith("| ")}
+    assert "(4/4)" in rows["PPO in ManiSkill (rule reward: success alone)"]
+    assert "(3/8)" in rows["PPO in ManiSkill (rule reward: the task's dense reward)"]  # 1 + 2 of 8 IND
 
 
 def test_single_task_points_make_table_1(tmp_path):
