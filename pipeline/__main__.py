@@ -11,7 +11,7 @@ from pathlib import Path
 
 from pipeline.errors import PipelineError
 from pipeline.executors import EXECUTORS
-from pipeline.plan import Project, parse_set, selection
+from pipeline.plan import Project, parse_set, selection, targets
 from pipeline.runner import execute, rerun_options, say
 
 
@@ -113,7 +113,7 @@ def cmd_run(project: Project, args, argv) -> int:
     for f in args.force:
         if f not in project.needs:
             raise PipelineError(f"--force: unknown stage {f!r}; known stages: {', '.join(project.order)}")
-    nodes = project.plan(stages, profile, sets, label=profile or "default", force=args.force)
+    nodes = project.plan(targets(project, stages, args.only), profile, sets, label=profile or "default", force=args.force)
     if args.dry_run:
         _status_table(nodes, f"profile {profile}: {sum(n.status == 'run' for n in nodes)} to run")
         return 0
@@ -134,7 +134,8 @@ def cmd_status(project: Project, args) -> int:
             _status_table(pt.nodes, pt.label)
         return 0
     stages = selection(project, args.until, args.only, args.start)
-    _status_table(project.plan(stages, profile, sets, label=profile or "default"), f"profile: {profile}")
+    _status_table(project.plan(targets(project, stages, args.only), profile, sets, label=profile or "default"),
+                  f"profile: {profile}")
     return 0
 
 

@@ -4,7 +4,9 @@ A stage package ``stages/<name>/`` exposes ``Config`` (a pydantic model, ``extra
 frozen) and ``run(ctx: StageContext) -> None``. It reads its inputs from ``ctx.inputs`` (read-only,
 committed artifacts of the stages it ``needs``), writes every output under ``ctx.out`` (a fresh
 staging directory), and never reads another stage's config. When ``run`` returns, the engine
-commits ``ctx.out`` atomically; when it raises, the staging directory is discarded.
+commits ``ctx.out`` atomically; when it raises, the staging directory is discarded. A stage may also
+expose ``used_needs(config) -> list[str]``, the subset of its ``needs`` a config reads
+(``pipeline.plan.Project.used_needs``); ``ctx.inputs`` then holds that subset.
 """
 from __future__ import annotations
 

@@ -12,7 +12,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from pipeline.errors import PipelineError
-from pipeline.graph import ancestors, select, topo_order
+from pipeline.graph import ancestors, descendants, select, topo_order
 from pipeline.keys import code_digest, stage_key
 from pipeline.spec import PipelineSpec, allowed_keys, load_spec
 from pipeline.store import Store
@@ -131,6 +131,21 @@ class Project:
             self._modules[stage] = mod
         return self._modules[stage]
 
+    def used_needs(self, stage: str, cfg: BaseModel) -> list[str]:
+        """The needs a stage reads under ``cfg``: all it declares, or the subset its module's optional
+        ``used_needs(config)`` names (PPO in the simulator reads no play-tuned world model). A stage
+        does not wait for, nor is its key made of, an input it does not read."""
+        declared = self.needs[stage]
+        fn = getattr(self.module(stage), "used_needs", None)
+        if fn is None:
+            return declared
+        used = list(fn(cfg))
+        extra = [n for n in used if n not in declared]
+        if extra:
+            raise PipelineError(f"stage {stage!r}: used_needs names {', '.join(map(repr, extra))}, which "
+                                f"{self.spec_path.name} does not list in stages.{stage}.needs ({', '.join(declared)})")
+        return [n for n in declared if n in used]
+
     def digest(self, stage: str) -> str:
         if stage not in self._digests:
             self._digests[stage] = code_digest(self.spec.stages[stage].module, self.roots)
@@ -182,19 +197,28 @@ class Project:
         label: str,
         force: Sequence[str] = (),
     ) -> list[Node]:
-        """Nodes for ``stages`` and everything they need, in order, with status and reasons."""
-        wanted = set(stages)
+        """Nodes for ``stages`` and everything they read under their configs (``used_needs``), in
+        order, with status and reasons."""
+        declared = set(stages)
         for s in stages:
-            wanted |= ancestors(self.needs, s)
+            declared |= ancestors(self.needs, s)
+        configs = {s: self.config(s, profile, overrides) for s in self.order if s in declared}
+        used = {s: self.used_needs(s, cfg) for s, cfg in configs.items()}
+        wanted, todo = set(stages), list(stages)
+        while todo:
+            for n in used[todo.pop()]:
+                if n not in wanted:
+                    wanted.add(n)
+                    todo.append(n)
         keys: dict[str, str] = {}
         nodes: list[Node] = []
         for stage in self.order:
             if stage not in wanted:
                 continue
             st = self.spec.stages[stage]
-            cfg = self.config(stage, profile, overrides)
+            cfg = configs[stage]
             cfg_json = cfg.model_dump(mode="json")
-            inputs = {n: keys[n] for n in st.needs}
+            inputs = {n: keys[n] for n in used[stage]}
             key_inputs = {"config": cfg_json, "code": self.digest(stage), "version": st.version, "inputs": inputs}
             key = stage_key(stage, st.version, key_inputs["code"], cfg_json, inputs)
             keys[stage] = key
@@ -233,3 +257,13 @@ class Project:
 
 def selection(project: Project, until: str | None, only: Sequence[str], start: str | None) -> list[str]:
     return select(project.needs, until=until, only=only, start=start)
+
+
+def targets(project: Project, selected: Sequence[str], only: Sequence[str]) -> list[str]:
+    """What a run plans for: the ``--only`` stages as given, else the selection's last stages (those no
+    other selected stage needs); planning adds what they read, so a stage the selection names only
+    as an ancestor drops out when no config reads it (``Project.used_needs``)."""
+    chosen = set(selected)
+    if only:
+        return [s for s in selected if s in set(only)]
+    return [s for s in selected if not (descendants(project.needs, s) & chosen)]

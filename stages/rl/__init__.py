@@ -14,7 +14,8 @@ Inputs:
     tokenize -- token store and tokenizer (the observation function)
     train_wm -- the action world model (with its proprioception head), its split, text embeddings
     wm_play -- whether that model was fine-tuned on the SFT policy's play, and the weights if so
-    (``stages.wm_play.action_world_model``): the model everything here imagines in
+    (``stages.wm_play.action_world_model``): the model everything here imagines in; not read with
+    reward ``rule`` (``used_needs``: PPO runs in the simulator, diagnostics imagine in train_wm's)
     goals -- one goal frame per environment
     sft -- the behaviour-cloned policy PPO starts from, its tasks and frame skip (``policy.json``)
 
@@ -40,7 +41,7 @@ Outputs:
 
 Key includes:
     this config (reward module and its weights, PPO hyper-parameters, seed) and the keys of
-    collect, tokenize, train_wm, wm_play, goals and sft.
+    collect, tokenize, train_wm, wm_play (not for ``rule``), goals and sft.
 
 Toy profile:
     4 world-model envs, a few hundred PPO steps, tiny head fits; ``rule`` uses one simulator env
@@ -189,6 +190,14 @@ def run(ctx) -> None:
     ctx.write_metrics(metrics)
 
 
+def used_needs(cfg: Config) -> list[str]:
+    """The inputs this config reads (the engine's ``Project.used_needs``): PPO in the simulator
+    (``rule``) reads no play-tuned world model (its reward diagnostics imagine in train_wm's), so a
+    ``rule`` run neither waits for wm_play nor changes key with it."""
+    needs = ["collect", "tokenize", "train_wm", "wm_play", "goals", "sft"]
+    return [n for n in needs if not (n == "wm_play" and cfg.reward == "rule")]
+
+
 def method_of(reward: str, rule_terms: str) -> str:
     """The method a run stands for in tables: the reward module, with ``rule`` split by what it pays
     (``rule``: success alone, the default; ``rule_dense``: the task's dense reward)."""
@@ -206,4 +215,4 @@ def read_rl_facts(rl_dir: str | Path) -> dict:
     return facts
 
 
-__all__ = ["Config", "run", "read_rl_facts", "method_of", "REWARDS", "RL_JSON"]
+__all__ = ["Config", "run", "used_needs", "read_rl_facts", "method_of", "REWARDS", "RL_JSON"]

@@ -38,11 +38,13 @@ class RLInputs:
         from stages.sft.policy import POLICY_FILE, load_policy
         from stages.tokenize.store import TokenStore
         from stages.tokenize.tokenizer import load_tokenizer
-        from stages.train_wm.rollout import TEXT_EMBEDDINGS
+        from stages.train_wm.rollout import TEXT_EMBEDDINGS, load_world_model
         from stages.wm_play import action_world_model
 
         wm_dir = ctx.input("train_wm")
-        wm = action_world_model(ctx.input("wm_play"), wm_dir, device=ctx.device)
+        play = ctx.inputs.get("wm_play")  # absent for rule (stages.rl.used_needs): train_wm's model
+        wm = action_world_model(play, wm_dir, device=ctx.device) if play is not None else \
+            load_world_model(wm_dir, kind="action", device=ctx.device)
         sft_info = read_policy_json(ctx.input("sft"))
         if int(sft_info["frame_skip"]) != wm.spec.frame_skip:
             raise ValueError(f"sft.frame_skip ({sft_info['frame_skip']}) != train_wm.frame_skip ({wm.spec.frame_skip}): "

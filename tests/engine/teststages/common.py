@@ -18,6 +18,7 @@ class Config(BaseModel):
     fail: bool = False
     shards: int = 0  # > 0: fan out work with ctx.map
     blob_mb: int = 0  # > 0: also write an output of this many MiB (engine-overhead benchmark)
+    reads: list[str] | None = None  # rl: the needs this config reads (used_needs); None: all it declares
 
 
 @functools.lru_cache(maxsize=1)
