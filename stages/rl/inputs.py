@@ -34,6 +34,7 @@ class RLInputs:
     def load(cls, ctx, cfg) -> "RLInputs":
         from stages.collect.dataset import Dataset
         from stages.goals import load_goals
+        from stages.rl import used_needs
         from stages.sft import read_policy_json
         from stages.sft.policy import POLICY_FILE, load_policy
         from stages.tokenize.store import TokenStore
@@ -42,9 +43,10 @@ class RLInputs:
         from stages.wm_play import action_world_model
 
         wm_dir = ctx.input("train_wm")
-        play = ctx.inputs.get("wm_play")  # absent for rule (stages.rl.used_needs): train_wm's model
-        wm = action_world_model(play, wm_dir, device=ctx.device) if play is not None else \
-            load_world_model(wm_dir, kind="action", device=ctx.device)
+        if "wm_play" in used_needs(cfg):
+            wm = action_world_model(ctx.input("wm_play"), wm_dir, device=ctx.device)
+        else:  # rule reads no play-tuned model (stages.rl.used_needs): train_wm's
+            wm = load_world_model(wm_dir, kind="action", device=ctx.device)
         sft_info = read_policy_json(ctx.input("sft"))
         if int(sft_info["frame_skip"]) != wm.spec.frame_skip:
             raise ValueError(f"sft.frame_skip ({sft_info['frame_skip']}) != train_wm.frame_skip ({wm.spec.frame_skip}): "
