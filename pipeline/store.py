@@ -3,7 +3,7 @@
 Layout under the store root::
 
     <stage>/<key[:2]>/<key>/manifest.json + outputs   committed artifacts
-    tmp/<stage>-<key[:12]>-<pid>-<rand>/              staging dirs (same filesystem), swept by gc
+    tmp/<stage>-<key[:12]>-<pid>.<start>-<rand>/      staging dirs (same filesystem), swept by gc
     locks/<key>.lock                                  per-key advisory locks
     refs/<label>/<stage>.json                         the key each label (profile, sweep point) last used
     runs/<time>-<id>.json                             run records
@@ -166,7 +166,7 @@ class Store:
     # ---- writing -----------------------------------------------------------------------------
     def staging(self, stage: str, key: str) -> Path:
         """A fresh, empty staging dir on the store's filesystem."""
-        d = self.root / "tmp" / f"{stage}-{key[:12]}-{os.getpid()}-{secrets.token_hex(4)}"
+        d = self.root / "tmp" / f"{stage}-{key[:12]}-{_owner()}-{secrets.token_hex(4)}"
         d.mkdir(parents=True)
         return d
 
@@ -213,7 +213,7 @@ class Store:
 
     def discard(self, path: Path) -> None:
         """Rename ``path`` into tmp/ (atomic), then delete it."""
-        trash = self.root / "tmp" / f"trash-{path.name[:12]}-{os.getpid()}-{secrets.token_hex(4)}"
+        trash = self.root / "tmp" / f"trash-{path.name[:12]}-{_owner()}-{secrets.token_hex(4)}"
         os.rename(path, trash)
         shutil.rmtree(trash, ignore_errors=True)
 
@@ -268,14 +268,30 @@ class Store:
                         yield stage_dir.name, art.name, art
 
     def stale_staging(self) -> list[Path]:
-        """Staging dirs whose writer process is gone (pid not alive on this host)."""
+        """Staging dirs whose writer process is gone: its pid not alive on this host, or alive with
+        another start time (the pid was reused by a later process; pids wrap at pid_max)."""
         out = []
         for d in sorted((self.root / "tmp").iterdir()):
             parts = d.name.rsplit("-", 2)
-            pid = int(parts[-2]) if len(parts) == 3 and parts[-2].isdigit() else None
-            if pid is None or not _pid_alive(pid):
+            pid, _, started = parts[-2].partition(".") if len(parts) == 3 else ("", "", "")
+            if not pid.isdigit() or not _pid_alive(int(pid)) or (started and _start_time(int(pid)) != started):
                 out.append(d)
         return out
+
+
+def _start_time(pid: int) -> str | None:
+    """When process ``pid`` started (clock ticks since boot, /proc/<pid>/stat field 22); None without /proc."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()[19]  # the fields after the command name start at field 3
+
+
+def _owner() -> str:
+    """This process in a staging dir's name: ``<pid>.<start time>`` (``<pid>`` where /proc is absent)."""
+    started = _start_time(os.getpid())
+    return f"{os.getpid()}.{started}" if started else str(os.getpid())
 
 
 def _pid_alive(pid: int) -> bool:

@@ -131,3 +131,18 @@ def test_a_stage_whose_source_changed_during_the_run_refuses_to_run(ws):
     ws.reset_log()
     ws.cli("run", "--until", "train_wm")  # planned again with the edited source: runs under a new key
     assert ws.executions() == ["train_wm"]
+
+
+def test_gc_tells_a_staging_dir_of_a_dead_writer_from_one_whose_pid_was_reused(tmp_path):
+    """pids wrap (pid_max), so a live pid alone does not prove the staging dir's writer is alive."""
+    from pipeline.store import Store
+
+    store = Store(tmp_path / "store")
+    mine = store.staging("goals", "a" * 64)  # this process: alive, same start time
+    pid, started = mine.name.rsplit("-", 2)[-2].split(".")
+    assert int(pid) == os.getpid() and started.isdigit()
+    reused = store.root / "tmp" / f"goals-{'b' * 12}-{pid}.{int(started) + 1}-0000"  # same pid, another process
+    reused.mkdir()
+    legacy = store.root / "tmp" / f"goals-{'c' * 12}-{pid}-0000"  # a name without the start time: pid only
+    legacy.mkdir()
+    assert store.stale_staging() == [reused]
