@@ -5,8 +5,8 @@ frozen) and ``run(ctx: StageContext) -> None``. It reads its inputs from ``ctx.i
 committed artifacts of the stages it ``needs``), writes every output under ``ctx.out`` (a fresh
 staging directory), and never reads another stage's config. When ``run`` returns, the engine
 commits ``ctx.out`` atomically; when it raises, the staging directory is discarded. A stage may also
-expose ``used_needs(config) -> list[str]``, the subset of its ``needs`` a config reads
-(``pipeline.plan.Project.used_needs``); ``ctx.inputs`` then holds that subset.
+expose ``unread_needs(config) -> list[str]``, those of its ``needs`` a config does not read
+(``pipeline.plan.Project.used_needs``); ``ctx.inputs`` then holds the rest.
 """
 from __future__ import annotations
 

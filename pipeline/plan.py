@@ -132,19 +132,18 @@ class Project:
         return self._modules[stage]
 
     def used_needs(self, stage: str, cfg: BaseModel) -> list[str]:
-        """The needs a stage reads under ``cfg``: all it declares, or the subset its module's optional
-        ``used_needs(config)`` names (PPO in the simulator reads no play-tuned world model). A stage
-        does not wait for, nor is its key made of, an input it does not read."""
+        """The needs a stage reads under ``cfg``: all it declares but those its module's optional
+        ``unread_needs(config)`` names (PPO in the simulator reads no play-tuned world model). A stage
+        does not wait for, nor is its key made of, an input it does not read; a need added to
+        pipeline.yaml is read unless the stage says otherwise."""
         declared = self.needs[stage]
-        fn = getattr(self.module(stage), "used_needs", None)
-        if fn is None:
-            return declared
-        used = list(fn(cfg))
-        extra = [n for n in used if n not in declared]
+        fn = getattr(self.module(stage), "unread_needs", None)
+        unread = list(fn(cfg)) if fn is not None else []
+        extra = [n for n in unread if n not in declared]
         if extra:
-            raise PipelineError(f"stage {stage!r}: used_needs names {', '.join(map(repr, extra))}, which "
+            raise PipelineError(f"stage {stage!r}: unread_needs names {', '.join(map(repr, extra))}, which "
                                 f"{self.spec_path.name} does not list in stages.{stage}.needs ({', '.join(declared)})")
-        return [n for n in declared if n in used]
+        return [n for n in declared if n not in unread]
 
     def digest(self, stage: str) -> str:
         if stage not in self._digests:

@@ -15,7 +15,7 @@ Inputs:
     train_wm -- the action world model (with its proprioception head), its split, text embeddings
     wm_play -- whether that model was fine-tuned on the SFT policy's play, and the weights if so
     (``stages.wm_play.action_world_model``): the model everything here imagines in; not read with
-    reward ``rule`` (``used_needs``: PPO runs in the simulator, diagnostics imagine in train_wm's)
+    reward ``rule`` (``unread_needs``: PPO runs in the simulator, diagnostics imagine in train_wm's)
     goals -- one goal frame per environment
     sft -- the behaviour-cloned policy PPO starts from, its tasks and frame skip (``policy.json``)
 
@@ -190,12 +190,11 @@ def run(ctx) -> None:
     ctx.write_metrics(metrics)
 
 
-def used_needs(cfg: Config) -> list[str]:
-    """The inputs this config reads (the engine's ``Project.used_needs``): PPO in the simulator
-    (``rule``) reads no play-tuned world model (its reward diagnostics imagine in train_wm's), so a
-    ``rule`` run neither waits for wm_play nor changes key with it."""
-    needs = ["collect", "tokenize", "train_wm", "wm_play", "goals", "sft"]
-    return [n for n in needs if not (n == "wm_play" and cfg.reward == "rule")]
+def unread_needs(cfg: Config) -> list[str]:
+    """The declared inputs this config does not read (the engine's ``Project.used_needs``): PPO in the
+    simulator (``rule``) reads no play-tuned world model (its reward diagnostics imagine in
+    train_wm's), so a ``rule`` run neither waits for wm_play nor changes key with it."""
+    return ["wm_play"] if cfg.reward == "rule" else []
 
 
 def method_of(reward: str, rule_terms: str) -> str:
@@ -210,9 +209,9 @@ def read_rl_facts(rl_dir: str | Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: is {rl_dir} a committed rl artifact of this version?")
     facts = json.loads(path.read_text())
-    # rl.json before rule_terms existed: rule paid the task's dense reward then
+    # rl.json without them predates rule_terms (rl re-keyed since): rule paid the task's dense reward
     facts.setdefault("method", method_of(facts["reward"], facts.get("rule_terms") or "dense"))
     return facts
 
 
-__all__ = ["Config", "run", "used_needs", "read_rl_facts", "method_of", "REWARDS", "RL_JSON"]
+__all__ = ["Config", "run", "unread_needs", "read_rl_facts", "method_of", "REWARDS", "RL_JSON"]

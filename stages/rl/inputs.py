@@ -34,7 +34,7 @@ class RLInputs:
     def load(cls, ctx, cfg) -> "RLInputs":
         from stages.collect.dataset import Dataset
         from stages.goals import load_goals
-        from stages.rl import used_needs
+        from stages.rl import unread_needs
         from stages.sft import read_policy_json
         from stages.sft.policy import POLICY_FILE, load_policy
         from stages.tokenize.store import TokenStore
@@ -43,9 +43,9 @@ class RLInputs:
         from stages.wm_play import action_world_model
 
         wm_dir = ctx.input("train_wm")
-        if "wm_play" in used_needs(cfg):
+        if "wm_play" not in unread_needs(cfg):
             wm = action_world_model(ctx.input("wm_play"), wm_dir, device=ctx.device)
-        else:  # rule reads no play-tuned model (stages.rl.used_needs): train_wm's
+        else:  # rule reads no play-tuned model (stages.rl.unread_needs): train_wm's
             wm = load_world_model(wm_dir, kind="action", device=ctx.device)
         sft_info = read_policy_json(ctx.input("sft"))
         if int(sft_info["frame_skip"]) != wm.spec.frame_skip:

@@ -160,7 +160,7 @@ def test_reward_sweep_reuses_the_shared_stages(store):
     # (seed 0's are the fixture run's)
     for s in ("sft", "wm_play"):
         assert acts[(s, "ran")] == 2 and acts[(s, "cached")] == 1, s
-    # PPO in the simulator reads no play-tuned world model (stages.rl.used_needs): not in its key
+    # PPO in the simulator reads no play-tuned world model (stages.rl.unread_needs): not in its key
     readers = {json.loads(m.read_text())["key_inputs"]["config"]["reward"]: "wm_play" in json.loads(m.read_text())["key_inputs"]["inputs"]
                for m in (store / "rl").glob("*/*/manifest.json")}
     assert readers == {"rule": False, "wm": True, "embedding": True, "proxy": True}

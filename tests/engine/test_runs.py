@@ -220,24 +220,24 @@ def test_a_tied_axis_sets_several_paths_to_one_value_per_point(ws):
 
 
 def test_a_stage_that_reads_fewer_inputs_neither_waits_for_nor_keys_on_the_rest(ws):
-    """``used_needs``: rl reading train_wm alone plans no goals, and goals' config does not re-key it."""
-    st = ws.cli("status", "--until", "rl", "--set", "rl.reads=[train_wm]").stdout
+    """``unread_needs``: rl not reading goals plans no goals, and goals' config does not re-key it."""
+    st = ws.cli("status", "--until", "rl", "--set", "rl.skips=[goals]").stdout
     assert "goals" not in st and "rl" in st
-    ws.cli("run", "--until", "rl", "--set", "rl.reads=[train_wm]")
+    ws.cli("run", "--until", "rl", "--set", "rl.skips=[goals]")
     assert ws.executions() == ["collect", "tokenize", "train_wm", "rl"]
     assert _result(ws, "rl")["inputs"] == ["train_wm"]
     ws.reset_log()
-    ws.cli("run", "--until", "rl", "--set", "rl.reads=[train_wm]", "--set", "goals.value=40")
+    ws.cli("run", "--until", "rl", "--set", "rl.skips=[goals]", "--set", "goals.value=40")
     assert ws.executions() == []  # goals is not read: its change neither runs it nor re-keys rl
     ws.cli("run", "--until", "rl")  # the declared needs: goals runs now, and rl with it under a new key
     assert ws.executions() == ["goals", "rl"]
     ws.reset_log()
-    ws.cli("run", "--set", "rl.reads=[train_wm]")  # the whole DAG: evaluate reads rl, rl reads no goals
+    ws.cli("run", "--set", "rl.skips=[goals]")  # the whole DAG: evaluate reads rl, rl reads no goals
     assert ws.executions() == ["evaluate"]  # the rl artifact that read train_wm alone is still the cached one
 
 
-def test_used_needs_outside_the_declared_needs_is_a_clear_error(ws):
-    proc = ws.cli("run", "--until", "rl", "--set", "rl.reads=[collect]", check=False)
+def test_unread_needs_outside_the_declared_needs_is_a_clear_error(ws):
+    proc = ws.cli("run", "--until", "rl", "--set", "rl.skips=[collect]", check=False)
     assert proc.returncode != 0
-    assert "stage 'rl': used_needs names 'collect', which pipeline.yaml does not list in stages.rl.needs" in proc.stderr
+    assert "stage 'rl': unread_needs names 'collect', which pipeline.yaml does not list in stages.rl.needs" in proc.stderr
     assert ws.executions() == []

@@ -18,7 +18,7 @@ class Config(BaseModel):
     fail: bool = False
     shards: int = 0  # > 0: fan out work with ctx.map
     blob_mb: int = 0  # > 0: also write an output of this many MiB (engine-overhead benchmark)
-    reads: list[str] | None = None  # rl: the needs this config reads (used_needs); None: all it declares
+    skips: list[str] = []  # rl: declared needs this config does not read (unread_needs)
 
 
 @functools.lru_cache(maxsize=1)

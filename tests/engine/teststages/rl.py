@@ -2,9 +2,9 @@
 from tests.engine.teststages.common import Config, run_stage
 
 
-def used_needs(cfg):
+def unread_needs(cfg):
     """Like the real rl stage with the simulator's reward: a config may read fewer inputs than declared."""
-    return cfg.reads if cfg.reads is not None else ["goals", "train_wm"]
+    return cfg.skips
 
 
 def run(ctx):
