@@ -268,30 +268,37 @@ class Store:
                         yield stage_dir.name, art.name, art
 
     def stale_staging(self) -> list[Path]:
-        """Staging dirs whose writer process is gone: its pid not alive on this host, or alive with
+        """Staging dirs whose writer process is gone: its pid not alive on this host, a zombie (killed,
+        never reaped: an init that reaps no orphans, as in some containers and VMs), or alive with
         another start time (the pid was reused by a later process; pids wrap at pid_max)."""
         out = []
         for d in sorted((self.root / "tmp").iterdir()):
             parts = d.name.rsplit("-", 2)
             pid, _, started = parts[-2].partition(".") if len(parts) == 3 else ("", "", "")
-            if not pid.isdigit() or not _pid_alive(int(pid)) or (started and _start_time(int(pid)) != started):
+            if not pid.isdigit() or not _pid_alive(int(pid)):
+                out.append(d)
+                continue
+            proc = _proc_stat(int(pid))
+            if proc is not None and (proc[0] in ("Z", "X") or (started and proc[1] != started)):
                 out.append(d)
         return out
 
 
-def _start_time(pid: int) -> str | None:
-    """When process ``pid`` started (clock ticks since boot, /proc/<pid>/stat field 22); None without /proc."""
+def _proc_stat(pid: int) -> tuple[str, str] | None:
+    """Process ``pid``'s state (R, S, Z, ...) and start time (clock ticks since boot), from
+    /proc/<pid>/stat fields 3 and 22; None without /proc."""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()
     except OSError:
         return None
-    return stat.rsplit(")", 1)[1].split()[19]  # the fields after the command name start at field 3
+    fields = stat.rsplit(")", 1)[1].split()  # the fields after the command name, from field 3 on
+    return fields[0], fields[19]
 
 
 def _owner() -> str:
     """This process in a staging dir's name: ``<pid>.<start time>`` (``<pid>`` where /proc is absent)."""
-    started = _start_time(os.getpid())
-    return f"{os.getpid()}.{started}" if started else str(os.getpid())
+    proc = _proc_stat(os.getpid())
+    return f"{os.getpid()}.{proc[1]}" if proc else str(os.getpid())
 
 
 def _pid_alive(pid: int) -> bool:

@@ -146,3 +146,25 @@ def test_gc_tells_a_staging_dir_of_a_dead_writer_from_one_whose_pid_was_reused(t
     legacy = store.root / "tmp" / f"goals-{'c' * 12}-{pid}-0000"  # a name without the start time: pid only
     legacy.mkdir()
     assert store.stale_staging() == [reused]
+
+
+def test_gc_takes_a_killed_but_unreaped_writer_for_dead(tmp_path):
+    """A writer killed with its run and never reaped (an init that reaps no orphans) stays a zombie:
+    its pid answers signal 0 with its own start time, yet it will never commit."""
+    import subprocess
+
+    from pipeline.store import Store, _proc_stat
+
+    store = Store(tmp_path / "store")
+    store.staging("goals", "a" * 64)  # this process: alive
+    child = subprocess.Popen(["true"])  # exits at once; a zombie until waited for
+    try:
+        deadline = time.time() + 10
+        while _proc_stat(child.pid)[0] != "Z":
+            assert time.time() < deadline
+            time.sleep(0.01)
+        zombie = store.root / "tmp" / f"goals-{'b' * 12}-{child.pid}.{_proc_stat(child.pid)[1]}-0000"
+        zombie.mkdir()
+        assert store.stale_staging() == [zombie]
+    finally:
+        child.wait()
