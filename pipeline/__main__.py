@@ -54,8 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p), _config_args(p), _select_args(p)
     p.add_argument("--sweep", default=None, metavar="NAME", help="status of every point of a sweep")
     _axis_arg(p)
-    p = sub.add_parser("dag", help="print the stages in order with what they need")
-    _common(p)
+    p = sub.add_parser("dag", help="print the stages in order with what they read under a config")
+    _common(p), _config_args(p)
     p.add_argument("--dot", action="store_true", help="graphviz dot output")
     p = sub.add_parser("sweep", help="run every point of a sweep and tabulate their metrics")
     _common(p), _config_args(p), _exec_args(p)
@@ -85,18 +85,27 @@ def _status_table(nodes, header: str | None = None) -> None:
 
 
 def cmd_dag(project: Project, args) -> int:
+    """The stages in order with their declared needs; a need the stage's config (under --profile and
+    --set) does not read (its module's ``unread_needs``) is marked: it is neither waited for nor keyed."""
+    profile, sets = _prepare(project, args)
+    unread = {s: [n for n in project.needs[s] if n not in project.used_needs(s, project.config(s, profile, sets))]
+              for s in project.order}
     if args.dot:
         print("digraph pipeline {\n  rankdir=LR;")
         for s in project.order:
             print(f'  "{s}";')
             for need in project.needs[s]:
-                print(f'  "{need}" -> "{s}";')
+                style = " [style=dashed, label=\"unread\"]" if need in unread[s] else ""
+                print(f'  "{need}" -> "{s}"{style};')
         print("}")
         return 0
     width = max(len(s) for s in project.order)
     for i, s in enumerate(project.order, 1):
-        needs = project.needs[s]
-        print(f"{i}. {s:<{width}}  <- {', '.join(needs)}" if needs else f"{i}. {s}")
+        read = [n for n in project.needs[s] if n not in unread[s]]
+        line = f"{i}. {s:<{width}}  <- {', '.join(read)}" if read else f"{i}. {s}"
+        if unread[s]:
+            line += f"  (declared, unread under this config: {', '.join(unread[s])})"
+        print(line)
     return 0
 
 

@@ -236,6 +236,15 @@ def test_a_stage_that_reads_fewer_inputs_neither_waits_for_nor_keys_on_the_rest(
     assert ws.executions() == ["evaluate"]  # the rl artifact that read train_wm alone is still the cached one
 
 
+def test_dag_marks_the_needs_a_config_does_not_read(ws):
+    lines = {line.split()[1]: line for line in ws.cli("dag").stdout.splitlines()}
+    assert lines["rl"].endswith("<- goals, train_wm") and "unread" not in lines["rl"]
+    lines = {line.split()[1]: line for line in ws.cli("dag", "--set", "rl.skips=[goals]").stdout.splitlines()}
+    assert lines["rl"].endswith("<- train_wm  (declared, unread under this config: goals)")
+    dot = ws.cli("dag", "--dot", "--set", "rl.skips=[goals]").stdout
+    assert '"goals" -> "rl" [style=dashed, label="unread"];' in dot and '"train_wm" -> "rl";' in dot
+
+
 def test_unread_needs_outside_the_declared_needs_is_a_clear_error(ws):
     proc = ws.cli("run", "--until", "rl", "--set", "rl.skips=[collect]", check=False)
     assert proc.returncode != 0
