@@ -124,6 +124,10 @@ class Config(BaseModel):
                                     "rollout policy exceeds 1.5x this (SB3); null = never")
     value_warmup_updates: int = Field(2, ge=0, description="first PPO updates that train the critic only (the "
                                       "policy stays SFT's while the value function learns its returns)")
+    freeze_actor_features: bool = Field(False, description="PPO leaves the actor's feature extractor (the CNN over "
+                                        "the latent, the proprioception and instruction layers) at SFT's weights; only "
+                                        "the actor's MLP, action head and noise adapt (inside the world model the "
+                                        "latents are imagined, unlike the real ones evaluation feeds it)")
     kl_coef: float = Field(0.0, ge=0, description="after each update, a pass minimising kl_coef * KL(SFT || policy) "
                            "over the rollout (0 = off)")
     self_imitation_batches: int = Field(8, ge=0, description="after each PPO update, minibatches of self-imitation on "

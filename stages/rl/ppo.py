@@ -11,7 +11,8 @@ On top of SB3's PPO, three guards, each set in the rl config (docs/rl.md):
   - ``critic_lr_scale``: the critic's learning rate is the actor's times this (one Adam, two
     parameter groups), so a small actor step size does not leave the value function unfitted;
   - ``self_imitation_batches``: after each update, that many steps of self-imitation on the
-    policy's own successful episodes (``stages.rl.self_imitation``).
+    policy's own successful episodes (``stages.rl.self_imitation``);
+  - ``freeze_actor_features``: the actor's feature extractor keeps SFT's weights.
 Reward normalisation (``normalize_reward``) is the environment's: SB3's ``VecNormalize``.
 """
 from __future__ import annotations
@@ -135,10 +136,23 @@ def make_ppo(env, cfg, sft_policy: TaskPolicy, sft_info: dict, device: str) -> S
                                              cfg.self_imitation_batches, batch_size, cfg.seed,
                                              cfg.self_imitation_weight)
     model.policy.load_state_dict(sft_policy.state_dict())
+    if cfg.freeze_actor_features:
+        freeze_actor_features(model.policy)
     model.keep_reference()
     # a logger without outputs: SB3's default one creates an empty /tmp/SB3-<time> directory per learn()
     model.set_logger(Logger(folder=None, output_formats=[]))
     return model
+
+
+def freeze_actor_features(policy: TaskPolicy) -> None:
+    """Keep the actor's feature extractor at its current (SFT) weights: no gradient reaches it in PPO's,
+    the KL pull's or self-imitation's updates (Adam skips a parameter without one); the critic's
+    extractor, the actor's MLP, action head and ``log_std`` still learn."""
+    if policy.share_features_extractor:
+        raise ValueError("rl.freeze_actor_features needs separate actor and critic extractors (the SFT policy "
+                         "shares one, so freezing it would freeze the critic's features too)")
+    for p in policy.pi_features_extractor.parameters():
+        p.requires_grad_(False)
 
 
 def normalized_rewards(env, cfg):

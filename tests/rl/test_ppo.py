@@ -49,6 +49,31 @@ def test_the_warm_up_trains_the_critic_only_then_the_actor_learns():
     assert model.updates_done == 2 and not torch.equal(a1, a2)
 
 
+def test_frozen_actor_features_keep_sfts_weights_while_the_actor_head_and_critic_learn():
+    torch.manual_seed(0)
+    model = _model(value_warmup_updates=0, freeze_actor_features=True, kl_coef=1.0, self_imitation_batches=2)
+    pol = model.policy
+    parts = {"features": pol.pi_features_extractor, "actor_mlp": pol.mlp_extractor.policy_net,
+             "critic_features": pol.vf_features_extractor}
+    before = {k: torch.cat([p.detach().flatten() for p in m.parameters()]).clone() for k, m in parts.items()}
+    model.learn(total_timesteps=32)
+    after = {k: torch.cat([p.detach().flatten() for p in m.parameters()]) for k, m in parts.items()}
+    assert model.updates_done == 2
+    assert torch.equal(before["features"], after["features"])
+    assert not torch.equal(before["actor_mlp"], after["actor_mlp"])
+    assert not torch.equal(before["critic_features"], after["critic_features"])
+
+
+def test_freezing_a_shared_extractor_is_a_clear_error():
+    import pytest
+
+    from stages.rl.ppo import freeze_actor_features
+
+    shared = make_policy(_model().observation_space, policy_kwargs([0.0] * 7, [1.0] * 7, features_dim=32, net_arch=32, share_features=True))
+    with pytest.raises(ValueError, match="separate actor and critic extractors"):
+        freeze_actor_features(shared)
+
+
 def test_the_kl_pull_runs_after_each_policy_update_against_the_frozen_sft_copy():
     torch.manual_seed(0)
     model = _model(value_warmup_updates=0, kl_coef=1.0)
