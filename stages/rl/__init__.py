@@ -130,6 +130,10 @@ class Config(BaseModel):
                                         "latents are imagined, unlike the real ones evaluation feeds it)")
     kl_coef: float = Field(0.0, ge=0, description="after each update, a pass minimising kl_coef * KL(SFT || policy) "
                            "over the rollout (0 = off)")
+    demo_bc_batches: int = Field(0, ge=0, description="after each PPO update, minibatches of behaviour cloning on the "
+                                 "SFT stage's training demonstrations (its own loss; stages.rl.demo_bc; 0 = off): an "
+                                 "anchor on the demonstrations' states, after DAPG")
+    demo_bc_coef: float = Field(1.0, gt=0, description="weight of the demonstration anchor's loss")
     self_imitation_batches: int = Field(8, ge=0, description="after each PPO update, minibatches of self-imitation on "
                                         "the policy's own successful episodes (stages.rl.self_imitation; 0 = off; "
                                         "8 lifted PPO in ManiSkill above SFT in domain: docs/RESULTS.md)")

@@ -12,7 +12,9 @@ On top of SB3's PPO, three guards, each set in the rl config (docs/rl.md):
     parameter groups), so a small actor step size does not leave the value function unfitted;
   - ``self_imitation_batches``: after each update, that many steps of self-imitation on the
     policy's own successful episodes (``stages.rl.self_imitation``);
-  - ``freeze_actor_features``: the actor's feature extractor keeps SFT's weights.
+  - ``freeze_actor_features``: the actor's feature extractor keeps SFT's weights;
+  - ``demo_bc_batches``: after each update, that many steps of behaviour cloning on the SFT
+    demonstrations (``stages.rl.demo_bc``), an anchor on the states SFT learned from.
 Reward normalisation (``normalize_reward``) is the environment's: SB3's ``VecNormalize``.
 """
 from __future__ import annotations
@@ -55,6 +57,7 @@ class SFTPPO(PPO):
         self.kl_history: list[float] = []
         self.curves = None  # stages.common.curves.Curves: update statistics per PPO update when set
         self.self_imitation = None  # stages.rl.self_imitation.SelfImitation, filled by its recorder callback
+        self.demo_bc = None  # stages.rl.demo_bc.DemoBC: the demonstration anchor when set
 
     def keep_reference(self) -> None:
         """Freeze a copy of the current policy (call after loading the SFT weights)."""
@@ -71,7 +74,7 @@ class SFTPPO(PPO):
                 group["lr"] = lr * group.get("lr_scale", 1.0)
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "reference", "curves", "self_imitation"]  # policy.zip: the fine-tuned policy
+        return [*super()._excluded_save_params(), "reference", "curves", "self_imitation", "demo_bc"]  # policy.zip: the fine-tuned policy
 
     def train(self) -> None:
         warm = self.updates_done < self.value_warmup_updates
@@ -91,6 +94,9 @@ class SFTPPO(PPO):
         sil_stats = {}
         if not warm and self.self_imitation is not None:
             sil_stats = self.self_imitation.update(self.policy, self.max_grad_norm, self.vf_coef)
+        bc_stats = {}
+        if not warm and self.demo_bc is not None:
+            bc_stats = self.demo_bc.update(self.policy, self.max_grad_norm)
         if self.curves is not None:
             for name in ("approx_kl", "clip_fraction", "value_loss", "policy_gradient_loss", "explained_variance", "std"):
                 self.curves.scalar(f"ppo/{name}", self.logger.name_to_value.get(f"train/{name}"), self.num_timesteps)
@@ -98,6 +104,8 @@ class SFTPPO(PPO):
                 self.curves.scalar("ppo/kl_to_sft", self.kl_history[-1], self.num_timesteps)
             for name, value in sil_stats.items():
                 self.curves.scalar(f"self_imitation/{name}", value, self.num_timesteps)
+            if "loss" in bc_stats:
+                self.curves.scalar("demo_bc/loss", bc_stats["loss"], self.num_timesteps)
         self.updates_done += 1
 
     def _pull_towards_reference(self) -> float:

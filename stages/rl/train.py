@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from stages.common.curves import Curves
+from stages.rl.demo_bc import DemoBC
 from stages.rl.diagnostics import binned_curve, plot_curves, progress_correlation
 from stages.rl.guard import Guard, fit_done_ensemble
 from stages.rl.ppo import make_ppo, normalized_rewards
@@ -80,6 +81,11 @@ def train(ctx, cfg, inp) -> dict:
 
     # ---- PPO from the SFT policy -------------------------------------------------------------------
     model = make_ppo(env, cfg, inp.sft_policy, inp.sft_info, inp.device)
+    if cfg.demo_bc_batches:
+        model.demo_bc = DemoBC.from_sft(ctx.input("sft"), inp.sft_info, inp.dataset, inp.store, inp.obs_fn,
+                                        batches=cfg.demo_bc_batches, batch_size=model.batch_size,
+                                        coef=cfg.demo_bc_coef, seed=cfg.seed)
+        metrics["demo_bc/pairs"] = len(model.demo_bc)
     before = flat_params(model.policy)
 
     t0 = time.perf_counter()
@@ -107,6 +113,8 @@ def train(ctx, cfg, inp) -> dict:
     })
     if model.self_imitation is not None:
         metrics.update({f"self_imitation/{k}": v for k, v in model.self_imitation.last_stats.items()})
+    if model.demo_bc is not None and model.demo_bc.last_stats:
+        metrics["demo_bc/loss_last"] = model.demo_bc.last_stats["loss"]
     if refit is not None:
         metrics.update(refit.metrics())
         torch.save(_cpu_state(raw_env.guard.ensemble), ctx.out / "guard.pt")  # the last refit's ensemble

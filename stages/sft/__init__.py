@@ -15,7 +15,8 @@ Inputs:
 
 Outputs:
     sft_policy.pt        the behaviour-cloned policy (``stages.sft.policy.load_policy``)
-    policy.json          what the policy is and needs: frame_skip, tasks, observation layout, noise
+    policy.json          what the policy is and needs: frame_skip, tasks, observation layout, noise,
+                         how its demonstrations were read and weighed (rl.demo_bc_batches reuses it)
     text_embeddings.json MiniLM embedding of every instruction of the collect artifact
     split.json           demonstration episodes trained on and held out (early stopping, R^2)
     training.png         train / held-out loss per epoch (also as TensorBoard events in tensorboard/)
@@ -167,7 +168,11 @@ def run(ctx) -> None:
 
     info = {"frame_skip": cfg.frame_skip, "tasks": list(cfg.tasks), "observation": sorted(obs_fn.space.spaces),
             "grid": list(tok.grid), "bits": tok.bits, "action_loc": loc.tolist(), "action_scale": scale.tolist(),
-            "initial_action_std": noise.tolist(), "policy_kwargs": {k: v for k, v in kwargs.items() if k != "features_extractor_class"}}
+            "initial_action_std": noise.tolist(),
+            # how the demonstrations were read and weighed: rl's demonstration anchor (rl.demo_bc_batches) reuses it
+            "demonstrations": {"retime_min_move": cfg.retime_min_move, "retime_max_gap": max(cfg.retime_max_gap, cfg.frame_skip),
+                               "loss_weights": weights.tolist()},
+            "policy_kwargs": {k: v for k, v in kwargs.items() if k != "features_extractor_class"}}
     (ctx.out / POLICY_JSON).write_text(json.dumps(info, indent=1) + "\n")
     dims = ["dx", "dy", "dz", "rx", "ry", "rz", "gripper"]
     metrics = {

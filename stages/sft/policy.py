@@ -127,7 +127,7 @@ def dim_weights(gripper_weight: float = 1.0, rotation_weight: float = 1.0) -> to
     return torch.tensor([1.0, 1.0, 1.0, rotation_weight, rotation_weight, rotation_weight, gripper_weight])
 
 
-def _loss(policy: TaskPolicy, obs: dict[str, torch.Tensor], target: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def bc_loss(policy: TaskPolicy, obs: dict[str, torch.Tensor], target: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(weighted mean loss, per-dimension squared error (B, 7) in normalised units) of the policy mean vs targets."""
     err = (policy.normalized(policy.mean_action(obs)) - policy.normalized(target)) ** 2  # (B, 7)
     weights = weights.to(err.device)
@@ -161,7 +161,7 @@ def behaviour_clone(policy: TaskPolicy, train: tuple[dict, np.ndarray], val: tup
         total = 0.0
         for i in range(0, len(y), batch_size):
             idx = perm[i: i + batch_size]
-            loss, _ = _loss(policy, {k: v[idx] for k, v in x.items()}, y[idx], weights)
+            loss, _ = bc_loss(policy, {k: v[idx] for k, v in x.items()}, y[idx], weights)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

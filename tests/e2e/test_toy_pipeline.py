@@ -178,6 +178,14 @@ def test_changing_an_rl_setting_does_not_rerun_sft(store):
     assert acts[("wm_play", "cached")] == 1 and acts[("wm_play", "ran")] == 0
 
 
+def test_the_demonstration_anchor_trains_on_sfts_own_training_pairs(store):
+    cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.demo_bc_batches=2")
+    m = json.loads((artifact(store, "rl") / "metrics.json").read_text())
+    sft = json.loads((shown(store, "sft") / "metrics.json").read_text())
+    assert m["demo_bc/pairs"] == sft["pairs/train"] > 0  # the pairs SFT trained on, read with its recipe
+    assert m["demo_bc/loss_last"] >= 0.0  # it ran after the toy profile's one post-warm-up update
+
+
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
     from types import SimpleNamespace
 
