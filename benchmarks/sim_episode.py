@@ -5,11 +5,13 @@
           so building the scene is included; stages/evaluate/episodes.py:_sim_for)
   render  like ``kept`` but rendering both cameras at every control step (``keep_frames``), as the
           env did before it skipped the unobserved control steps of a policy step
+  cached  like ``kept`` but in scenes the env has built before (a ``cache_size`` that covers them):
+          what the rl stage's simulator envs (2 of their 48 scenes kept) would save by keeping all
 
 Each episode: ``--steps`` policy steps of ``frame_skip`` control steps (random actions: speed does
 not depend on the policy), the small tokenizer's architecture (random weights) as the observation.
 Scenes are the default catalog's IND scenes, one per episode, task push. Prints seconds per episode
-and the ratios fresh/kept and render/kept.
+and the ratios fresh/kept, render/kept and kept/cached.
 
     .venv/bin/python benchmarks/sim_episode.py [--episodes 3] [--steps 75]
 """
@@ -48,7 +50,7 @@ def main() -> None:
 
     scenes = [s for s in default_catalog().values() if s.split == "ind"]
     specs = [SimSpec("push", s.to_dict()) for s in scenes]
-    tok = tokenizer()
+    tok = tokenizer("cpu")
     obs_fn = ObservationFn(tok, {})
     rng = np.random.default_rng(0)
 
@@ -60,7 +62,7 @@ def main() -> None:
     warm.close()
     del warm
 
-    times: dict[str, list[float]] = {"fresh": [], "kept": [], "render": []}
+    times: dict[str, list[float]] = {"fresh": [], "kept": [], "render": [], "cached": []}
     for i in range(args.episodes):  # fresh: a new env per episode, closed after it (the last one alive)
         t = time.perf_counter()
         env = make(specs[i])
@@ -78,6 +80,14 @@ def main() -> None:
             episode(kept, spec, 200 + offset + i, args.steps, rng)
             times[way].append(time.perf_counter() - t)
     kept.close()
+    cached = make(specs[0], cache_size=len(specs))
+    for i in range(args.episodes):  # build each scene once, untimed
+        episode(cached, specs[i], 300 + i, 1, rng)
+    for i in range(args.episodes):
+        t = time.perf_counter()
+        episode(cached, specs[i], 400 + i, args.steps, rng)
+        times["cached"].append(time.perf_counter() - t)
+    cached.close()
 
     med = {k: statistics.median(v) for k, v in times.items()}
     print(f"episode = {args.steps} policy steps x {args.frame_skip} control steps, push, 64x64, low-poly Panda")
@@ -85,6 +95,7 @@ def main() -> None:
         print(f"  {k:7s} median {med[k]:6.2f} s/episode  ({', '.join(f'{x:.2f}' for x in v)})")
     print(f"ratio fresh/kept  {med['fresh'] / med['kept']:.2f}x  (keeping a worker's simulator between jobs)")
     print(f"ratio render/kept {med['render'] / med['kept']:.2f}x  (rendering only the observed control step)")
+    print(f"ratio kept/cached {med['kept'] / med['cached']:.2f}x  (keeping every scene built)")
 
 
 if __name__ == "__main__":

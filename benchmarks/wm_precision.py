@@ -54,8 +54,8 @@ def both(name: str, fn, reps: int) -> None:
 def speed(envs: int) -> None:
     from stages.train_wm.train import losses
 
-    tok, lin = tokenizer(), torch.nn.Linear(128, 512)
-    wm = action_wm(tok)
+    tok, lin = tokenizer("cpu"), torch.nn.Linear(128, 512)
+    wm = action_wm(tok, "cpu")
     x = torch.randn(envs * wm.spec.tokens, 128)
     roll = wm.rollout(envs)
     h, w = wm.spec.grid
@@ -70,7 +70,7 @@ def speed(envs: int) -> None:
         both("world-model rollout step", lambda: roll.step(acts), 5)
         both("tokenizer decode (both views)", lambda: tok.decode(frames), 5)
         both("tokenizer encode (both views)", lambda: tok.encode(images, images), 5)
-        fast = tokenizer()
+        fast = tokenizer("cpu")
         conv_layout(fast.net.decoder, "cpu", "bf16")
         both("tokenizer decode, decoder channels-last", lambda: fast.decode(frames), 5)
         lp = get_lpips("cpu")

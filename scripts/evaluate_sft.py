@@ -3,6 +3,7 @@
 
     PYTHONPATH=. .venv/bin/python scripts/evaluate_sft.py <collect> <tokenize> <sft> [--episodes 25] [--jobs 2]
 
+``--seed 1`` draws initial states disjoint from the evaluate stage's (its ``seed`` 0).
 ``--rl <rl artifact>`` evaluates that artifact's PPO policy (``policy.zip``) instead, on the same
 initial states; ``scripts/paired_success.py`` then pairs it with the SFT episodes.
 
@@ -30,6 +31,8 @@ def main() -> None:
     for name in ("collect", "tokenize", "sft"):
         ap.add_argument(name, type=Path)
     ap.add_argument("--episodes", type=int, default=25, help="episodes per (task, split)")
+    ap.add_argument("--seed", type=int, default=0, help="the evaluate stage's seed: another value draws initial "
+                    "states disjoint from the stage's default ones (a fresh sample, e.g. to replicate a result)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--splits", default="ind,ood")
     ap.add_argument("--max-steps", type=int, default=75)
@@ -54,7 +57,7 @@ def main() -> None:
         (rl_dir / "policy.zip").symlink_to(args.rl.resolve())
     dirs = {"collect": args.collect, "tokenize": args.tokenize, "sft": args.sft, "rl": rl_dir}
     ctx = SimpleNamespace(input=lambda name: dirs[name], device="cpu")
-    cfg = Config(episodes=args.episodes, policies=["ppo" if args.rl else "sft"], splits=args.splits.split(","), videos=False,
+    cfg = Config(episodes=args.episodes, seed=args.seed, policies=["ppo" if args.rl else "sft"], splits=args.splits.split(","), videos=False,
                  max_steps=args.max_steps, snapshot_episodes=0)
     jobs = build_jobs(ctx, cfg, {"tasks": info["tasks"], "frame_skip": info["frame_skip"]})
     if args.strips is not None:

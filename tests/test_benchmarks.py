@@ -1,0 +1,31 @@
+"""The benchmarks under benchmarks/ run: each at its smallest size, its real entry point.
+
+They are not timed here (ratios are theirs to print); this only keeps them from rotting when the
+code they call changes (both below had gone stale when the helpers they import gained a device).
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run(*args: str) -> str:
+    out = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout
+
+
+def test_wm_precision_prints_its_ratios():
+    out = run("benchmarks/wm_precision.py", "--envs", "1")
+    assert "world-model rollout step" in out and "ratio" in out
+
+
+@pytest.mark.sim
+def test_sim_episode_prints_its_ratios():
+    out = run("benchmarks/sim_episode.py", "--episodes", "1", "--steps", "2")
+    assert "ratio fresh/kept" in out and "ratio kept/cached" in out
