@@ -20,11 +20,14 @@ class PolicyCheck:
 
 def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_path: Path, *, split: str,
                envs: int, steps: int, keep_frames: bool = False, decode_steps: int | None = None,
-               temperature: float | None = None, wm_play: Path | None = None) -> PolicyCheck:
+               temperature: float | None = None, wm_play: Path | None = None,
+               wm_net: Path | None = None) -> PolicyCheck:
     """``envs`` environments of ``split`` (round-robin over the SFT policy's tasks), on CPU.
 
     decode_steps, temperature: the world model's rollout decoding (None: the train_wm artifact's own).
     wm_play: a wm_play artifact: its fine-tuned weights replace train_wm's (the model rl trained in).
+    wm_net: an action world-model checkpoint (e.g. ``scripts/wm_ablation.py --save``) that replaces
+    train_wm's network, architecture included; train_wm's proprioception head and decoding stay.
     """
     from stages.collect.catalog import read_scenes_json
     from stages.collect.dataset import read_sim_facts
@@ -44,6 +47,12 @@ def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_
         from stages.wm_play import action_world_model
 
         wm.net.load_state_dict(action_world_model(wm_play, train_wm).net.state_dict())
+    if wm_net is not None:
+        from stages.train_wm.rollout import WorldModel, load_net
+
+        if wm_play is not None:
+            raise SystemExit("--wm-net and --wm-play each replace the world model; give one")
+        wm = WorldModel(load_net(wm_net), wm.decode_steps, wm.temperature, wm._text, wm.proprio_head)
     tasks = read_policy_json(sft)["tasks"]
     scenes, facts = read_scenes_json(collect / "scenes.json"), read_sim_facts(collect)
     picked = pick_environments([e for e in list_environments(collect) if e.split == split and e.task in tasks], envs)
@@ -61,6 +70,13 @@ def add_artifact_args(ap, names=("collect", "tokenize", "train_wm", "sft")) -> N
         ap.add_argument("--wm-play", type=Path, default=None,
                         help="a committed wm_play artifact: imagine in its fine-tuned action world model, the one "
                              "the rl stage trains in (default: train_wm's as it is)")
+
+
+def add_wm_net_option(ap) -> None:
+    """--wm-net FILE: imagine in another action world-model checkpoint (``load_check``'s ``wm_net``)."""
+    ap.add_argument("--wm-net", type=Path, default=None,
+                    help="an action world-model checkpoint file (scripts/wm_ablation.py --save) to imagine in "
+                         "instead of train_wm's network (its proprioception head and decoding stay)")
 
 
 def add_decoding_options(ap) -> None:

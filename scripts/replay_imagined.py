@@ -20,7 +20,7 @@ import torch
 
 
 def main() -> None:
-    from policy_check import add_artifact_args, add_decoding_options, load_check
+    from policy_check import add_artifact_args, add_decoding_options, add_wm_net_option, load_check
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_artifact_args(ap, ("collect", "tokenize", "train_wm", "sft", "rl"))
@@ -39,6 +39,7 @@ def main() -> None:
                     help="apply the rl artifact's guard.pt (rl.guard): an imagined success then needs its confirmation, "
                          "as in the guarded env; the done head alone is printed beside it")
     add_decoding_options(ap)
+    add_wm_net_option(ap)
     ap.add_argument("--seed", type=int, default=2_000_000)
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -49,7 +50,8 @@ def main() -> None:
 
     path = {"ppo": args.rl / "policy.zip", "sft": args.sft / POLICY_FILE}.get(args.policy, args.rl / args.policy)
     c = load_check(args.collect, args.tokenize, args.train_wm, args.sft, path, split=args.split, envs=args.envs,
-                   steps=args.steps, decode_steps=args.decode_steps, temperature=args.temperature, wm_play=args.wm_play)
+                   steps=args.steps, decode_steps=args.decode_steps, temperature=args.temperature, wm_play=args.wm_play,
+                   wm_net=args.wm_net)
     tok, obs_fn, wm, policy, specs, sim = c.tok, c.obs_fn, c.wm, c.policy, c.specs, c.sim
     record = {} if args.strip else None
     guard = load_guard(args.rl / "guard.pt", args.theta) if args.guard else None

@@ -6,7 +6,8 @@ held-out IND and OOD episodes, next to copy-last, shuffled actions and the token
 
 ``--save FILE`` also writes the trained action WM as a checkpoint (the stage's format): with a
 different ``seed`` in the overrides, an independently trained member for an ensemble check
-(``scripts/wm_disagreement.py``).
+(``scripts/wm_disagreement.py``). ``--load FILE`` skips training and evaluates a saved checkpoint
+(e.g. the stage's ``action_wm.pt``) on the same starts, the like-for-like baseline of a trained row.
 
 Uses the stage's own functions (load_episodes, ClipSampler, train_world_model, horizon_eval); the
 held-out IND list is the tokenizer's, OOD is capped at 6 episodes, 6 starts per episode.
@@ -27,7 +28,7 @@ from stages.tokenize.tokenizer import load_tokenizer
 from stages.train_wm.data import ClipSampler, load_episodes, split_episodes
 from stages.train_wm.evaluate import horizon_eval, real_images, rollout_starts
 from stages.train_wm.model import WorldModelNet
-from stages.train_wm.rollout import WorldModel, save_world_model
+from stages.train_wm.rollout import WorldModel, load_net, save_world_model
 from stages.train_wm.train import train_world_model
 
 
@@ -38,6 +39,9 @@ def main() -> None:
     ap.add_argument("tokenize", type=Path)
     ap.add_argument("overrides", type=json.loads, help="train_wm config overrides as JSON")
     ap.add_argument("--save", type=Path, default=None, help="write the trained action WM checkpoint here")
+    ap.add_argument("--load", type=Path, default=None,
+                    help="evaluate this action WM checkpoint (e.g. a train_wm artifact's action_wm.pt) instead of "
+                         "training one; the overrides still pick the data (frame_skip, seed)")
     args = ap.parse_args()
     collect, tok_dir, overrides = args.collect, args.tokenize, args.overrides
     cfg = W.Config(**overrides)
@@ -46,6 +50,9 @@ def main() -> None:
     held = set(json.loads((tok_dir / "split.json").read_text())["heldout"])
     train, heldout, ood = split_episodes(eps, held, cfg.holdout_fraction, cfg.seed)
     store = TokenStore(tok_dir)
+    if args.load:
+        evaluate(load_net(args.load), cfg, collect, tok_dir, heldout, ood)
+        return
     net = WorldModelNet(W.model_spec(cfg, "action", 2**store.bits, tuple(store.grid)))
     net.set_action_stats(torch.from_numpy(np.concatenate([e.actions for e in train])))
     sampler = ClipSampler(train, cfg.window, {e.instruction: np.zeros(384, np.float32) for e in eps}, cfg.seed)
@@ -58,6 +65,11 @@ def main() -> None:
           {k: round(v, 3) for k, v in r["final"].items()}, flush=True)
     if args.save:
         save_world_model(net, args.save, {"decode_steps": cfg.decode_steps, "temperature": cfg.temperature})
+    evaluate(net, cfg, collect, tok_dir, heldout, ood)
+
+
+def evaluate(net, cfg, collect: Path, tok_dir: Path, heldout: list, ood: list) -> None:
+    """Open-loop metrics at horizons 1, 5, 15 on the held-out IND and (up to 6) OOD episodes."""
     wm = WorldModel(net, cfg.decode_steps, 0.0)
     tok, ds = load_tokenizer(tok_dir, "cpu"), Dataset(collect)
     for name, split in (("ind", heldout), ("ood", ood[:6])):

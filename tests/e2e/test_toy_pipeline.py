@@ -268,3 +268,28 @@ def test_without_play_rl_trains_in_train_wms_model(store):
     assert not (play / "action_wm.pt").exists()
     m = json.loads((artifact(store, "rl") / "metrics.json").read_text())
     assert "imagined/ind/imagined_done" in m  # the precision check ran, in train_wm's model
+
+
+def test_the_scripts_imagine_in_a_world_model_checkpoint_they_are_given(store):
+    """scripts/policy_check.py's ``wm_net`` (replay_imagined --wm-net): a checkpoint replaces train_wm's network,
+    train_wm's proprioception head and decoding stay; it and a wm_play artifact cannot both be given."""
+    import torch
+
+    sys.path.insert(0, str(REPO / "scripts"))
+    from policy_check import load_check
+
+    from stages.sft.policy import POLICY_FILE
+
+    ups = {s: shown(store, s) for s in ("collect", "tokenize", "train_wm", "sft", "wm_play")}
+    args = (ups["collect"], ups["tokenize"], ups["train_wm"], ups["sft"], ups["sft"] / POLICY_FILE)
+    plain = load_check(*args, split="ind", envs=1, steps=3)
+    given = load_check(*args, split="ind", envs=1, steps=3, wm_net=ups["wm_play"] / "action_wm.pt")
+    try:
+        tuned = torch.load(ups["wm_play"] / "action_wm.pt", map_location="cpu", weights_only=True)["state_dict"]
+        assert all(torch.equal(v, tuned[k]) for k, v in given.wm.net.state_dict().items())
+        assert any(not torch.equal(v, plain.wm.net.state_dict()[k]) for k, v in tuned.items())  # a different network
+        assert given.wm.proprio_head is not None and given.wm.decode_steps == plain.wm.decode_steps
+    finally:
+        plain.sim.close(), given.sim.close()
+    with pytest.raises(SystemExit, match="give one"):
+        load_check(*args, split="ind", envs=1, steps=3, wm_play=ups["wm_play"], wm_net=ups["wm_play"] / "action_wm.pt")
