@@ -40,6 +40,8 @@ def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_
     from stages.tokenize.tokenizer import load_tokenizer
     from stages.train_wm.rollout import load_world_model
 
+    if wm_net is not None and wm_play is not None:
+        raise SystemExit("--wm-net and --wm-play each replace the world model; give one")
     tok = load_tokenizer(tokenize, "cpu")
     obs_fn = ObservationFn(tok, json.loads((sft / TEXT_EMBEDDINGS).read_text()))
     wm = load_world_model(train_wm, "action", "cpu", decode_steps=decode_steps, temperature=temperature)
@@ -50,8 +52,6 @@ def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_
     if wm_net is not None:
         from stages.train_wm.rollout import WorldModel, load_net
 
-        if wm_play is not None:
-            raise SystemExit("--wm-net and --wm-play each replace the world model; give one")
         wm = WorldModel(load_net(wm_net), wm.decode_steps, wm.temperature, wm._text, wm.proprio_head)
     tasks = read_policy_json(sft)["tasks"]
     scenes, facts = read_scenes_json(collect / "scenes.json"), read_sim_facts(collect)
