@@ -293,3 +293,35 @@ def test_the_scripts_imagine_in_a_world_model_checkpoint_they_are_given(store):
         plain.sim.close(), given.sim.close()
     with pytest.raises(SystemExit, match="give one"):
         load_check(*args, split="ind", envs=1, steps=3, wm_play=ups["wm_play"], wm_net=ups["wm_play"] / "action_wm.pt")
+
+
+def test_the_world_model_probe_trains_and_fine_tunes_on_an_exported_store(store, tmp_path):
+    """scripts/wm_size_probe.py: export (with the SFT policy's play), train a model from scratch on it and
+    fine-tune train_wm's on the play; the checkpoints load as the stage's and the fine-tune moved the weights."""
+    import numpy as np
+    import torch
+
+    from stages.train_wm.rollout import load_net
+
+    ups = {s: shown(store, s) for s in ("collect", "tokenize", "train_wm", "sft")}
+    data, out = tmp_path / "data.pt", tmp_path / "out"
+    run = lambda *a: subprocess.run([sys.executable, "scripts/wm_size_probe.py", *map(str, a)], cwd=REPO,  # noqa: E731
+                                    capture_output=True, text=True, timeout=900, env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
+    p = run("export", ups["collect"], ups["tokenize"], ups["train_wm"], "--out", data, "--play-sft", ups["sft"],
+            "--play-episodes", 2, "--play-steps", 4)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert "2 play episodes" in p.stdout
+    base = ups["train_wm"] / "action_wm.pt"
+    p = run("train", data, '{"action_steps": 3}', "--with-play", 1, "--finetune", base, "--finetune-steps", 2,
+            "--baseline", base, "--save-dir", out)
+    assert p.returncode == 0, p.stderr[-3000:]
+    results = json.loads((out / "results.json").read_text())
+    assert set(results) == {"baseline", "action_wm_play", "m0"}
+    for name in ("baseline", "action_wm_play", "m0"):
+        for split, m in results[name]["eval"].items():
+            tf = m["teacher_forced"]
+            assert np.isfinite(tf["ce"]) and 0.0 <= tf["acc"] <= 1.0, (name, split, tf)
+            assert 0.0 <= m["done"]["auroc"] <= 1.0 or np.isnan(m["done"]["auroc"]), (name, split, m["done"])
+    tuned, orig = load_net(out / "action_wm_play.pt"), load_net(base)
+    assert tuned.spec == orig.spec == load_net(out / "m0.pt").spec  # the artifact's config, not the defaults
+    assert any(not torch.equal(v, orig.state_dict()[k]) for k, v in tuned.state_dict().items())
