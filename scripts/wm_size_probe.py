@@ -25,7 +25,7 @@ Each saved checkpoint is the stage's format (``save_world_model``): ``scripts/re
 Metrics (held-out IND episodes and OOD episodes): teacher-forced token cross-entropy and accuracy
 of hidden tokens (the training loss's masking, fixed seed), open-loop token accuracy at horizons
 1, 5, 15 from real start frames under the recorded actions (next to copy-last), done-head AUROC
-on real sequences and the near-miss false-alarm rate at theta 0.5 (the stage's metrics).
+on real sequences and the near-miss false-alarm rate at train_wm's done_threshold (the stage's metrics).
 """
 from __future__ import annotations
 
@@ -129,6 +129,7 @@ def open_loop_acc(wm, episodes: list, horizons=(1, 5, 15), per_episode: int = 4)
 
 
 def evaluate(net, data: dict, cfg, device: str) -> dict:
+    """The metrics above on the held-out IND and the OOD episodes (a split without episodes is left out)."""
     from stages.collect.plans import FAILURE_KINDS
     from stages.train_wm.evaluate import done_head_eval, false_alarm_rate
     from stages.train_wm.rollout import WorldModel
@@ -141,9 +142,9 @@ def evaluate(net, data: dict, cfg, device: str) -> dict:
             continue
         out[split] = {"teacher_forced": teacher_forced(net, eps, data["text_emb"], cfg, device),
                       "open_loop_token_acc": open_loop_acc(wm, eps),
-                      "done": {k: v for k, v in done_head_eval(wm, eps, 0.5, data["text_emb"]).items()
+                      "done": {k: v for k, v in done_head_eval(wm, eps, cfg.done_threshold, data["text_emb"]).items()
                                if k in ("auroc", "precision", "recall")},
-                      "near_miss": false_alarm_rate(wm, [e for e in eps if e.kind in FAILURE_KINDS], 0.5,
+                      "near_miss": false_alarm_rate(wm, [e for e in eps if e.kind in FAILURE_KINDS], cfg.done_threshold,
                                                     data["text_emb"])}
     return out
 
