@@ -298,6 +298,8 @@ def test_the_scripts_imagine_in_a_world_model_checkpoint_they_are_given(store):
 def test_the_world_model_probe_trains_and_fine_tunes_on_an_exported_store(store, tmp_path):
     """scripts/wm_size_probe.py: export (with the SFT policy's play), train a model from scratch on it and
     fine-tune train_wm's on the play; the checkpoints load as the stage's and the fine-tune moved the weights."""
+    import os
+
     import numpy as np
     import torch
 
@@ -305,8 +307,9 @@ def test_the_world_model_probe_trains_and_fine_tunes_on_an_exported_store(store,
 
     ups = {s: shown(store, s) for s in ("collect", "tokenize", "train_wm", "sft")}
     data, out = tmp_path / "data.pt", tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
     run = lambda *a: subprocess.run([sys.executable, "scripts/wm_size_probe.py", *map(str, a)], cwd=REPO,  # noqa: E731
-                                    capture_output=True, text=True, timeout=900, env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
+                                    capture_output=True, text=True, timeout=900, env=env)
     p = run("export", ups["collect"], ups["tokenize"], ups["train_wm"], "--out", data, "--play-sft", ups["sft"],
             "--play-episodes", 2, "--play-steps", 4)
     assert p.returncode == 0, p.stderr[-3000:]
@@ -318,6 +321,7 @@ def test_the_world_model_probe_trains_and_fine_tunes_on_an_exported_store(store,
     results = json.loads((out / "results.json").read_text())
     assert set(results) == {"baseline", "action_wm_play", "m0"}
     for name in ("baseline", "action_wm_play", "m0"):
+        assert results[name]["eval"], name  # at least one split evaluated
         for split, m in results[name]["eval"].items():
             tf = m["teacher_forced"]
             assert np.isfinite(tf["ce"]) and 0.0 <= tf["acc"] <= 1.0, (name, split, tf)
