@@ -30,6 +30,8 @@ on real sequences and the near-miss false-alarm rate at train_wm's done_threshol
 from __future__ import annotations
 
 import argparse
+import gzip
+import io
 import json
 import time
 from pathlib import Path
@@ -43,21 +45,43 @@ def export(args) -> None:
     from stages.tokenize.store import TokenStore
     from stages.train_wm.data import load_episodes, split_episodes
 
-    wm_config = json.loads((args.train_wm / "manifest.json").read_text())["key_inputs"]["config"]
+    if args.play_sft and args.train_wm is None:
+        raise ValueError("--play-sft needs the train_wm artifact (its split and instruction embeddings)")
+    if args.train_wm is not None:
+        wm_config = json.loads((args.train_wm / "manifest.json").read_text())["key_inputs"]["config"]
+    else:  # a tokenize artifact no world model was trained on (another token grid): train_wm's defaults
+        wm_config = W.Config().model_dump(mode="json")
     cfg = W.Config(**wm_config)  # the artifact's own config: frame skip, split seed (and the defaults of `train`)
     episodes = load_episodes(args.collect, args.tokenize, frame_skip=cfg.frame_skip)
     split = json.loads((args.tokenize / "split.json").read_text())
     train, held, ood = split_episodes(episodes, set(split.get("heldout", [])), cfg.holdout_fraction, cfg.seed)
     store = TokenStore(args.tokenize)
-    text = {k: np.asarray(v, np.float32) for k, v in json.loads((args.train_wm / "text_embeddings.json").read_text()).items()}
+    if args.train_wm is not None:
+        text = {k: np.asarray(v, np.float32)
+                for k, v in json.loads((args.train_wm / "text_embeddings.json").read_text()).items()}
+    else:
+        from stages.common.text_encoder import encode_texts
+
+        instructions = sorted({e.instruction for e in episodes})
+        text = dict(zip(instructions, (np.asarray(v, np.float32) for v in encode_texts(instructions))))
     play = sft_play(args, cfg.frame_skip) if args.play_sft else []
     for ep in episodes + play:
         ep.tokens = ep.tokens.astype(np.int16)  # (T+1, N): ids < 2^bits <= 2^15, a quarter of the file; int64 again on load
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
     torch.save({"train": train, "heldout": held, "ood": ood, "play": play, "text_emb": text, "wm_config": wm_config,
-                "vocab": 2**store.bits, "grid": tuple(store.grid)}, args.out)
+                "vocab": 2**store.bits, "grid": tuple(store.grid)}, buf)
+    args.out.write_bytes(gzip.compress(buf.getvalue(), compresslevel=6))  # the GPU machine takes 64 MiB in all
     print(f"{len(train)} train / {len(held)} held-out IND / {len(ood)} OOD / {len(play)} play episodes -> {args.out} "
           f"({args.out.stat().st_size / 2**20:.1f} MiB)")
+
+
+def load_data(path: Path) -> dict:
+    """An exported file (gzip-compressed; older exports are plain torch files)."""
+    raw = path.read_bytes()
+    if raw[:2] == b"\x1f\x8b":
+        raw = gzip.decompress(raw)
+    return torch.load(io.BytesIO(raw), weights_only=False)
 
 
 def sft_play(args, frame_skip: int) -> list:
@@ -108,9 +132,11 @@ def teacher_forced(net, episodes: list, text_emb: dict, cfg, device: str, batche
 
 
 @torch.no_grad()
-def open_loop_acc(wm, episodes: list, horizons=(1, 5, 15), per_episode: int = 4) -> dict[str, float]:
-    """Open-loop token accuracy (fraction of the frame's tokens right) and copy-last's, per horizon."""
-    from stages.train_wm.evaluate import open_loop, rollout_starts, true_actions
+def open_loop_acc(wm, episodes: list, horizons=(1, 5, 15), per_episode: int = 4, tok=None) -> dict[str, float]:
+    """Open-loop token accuracy (fraction of the frame's tokens right) and copy-last's, per horizon; with
+    the tokenizer ``tok`` also the PSNR of the decoded prediction against the real frame's tokens decoded
+    (whole observation and third view alone), a measure that compares models of different token grids."""
+    from stages.train_wm.evaluate import decoded, open_loop, rollout_starts, true_actions
 
     longest = max((e.length for e in episodes), default=0)
     horizons = [h for h in horizons if h <= longest]  # short (toy) episodes: the horizons they have
@@ -125,10 +151,58 @@ def open_loop_acc(wm, episodes: list, horizons=(1, 5, 15), per_episode: int = 4)
     for h in horizons:
         out[f"h{h}/wm"] = float((pred[:, h - 1] == real[:, h - 1]).float().mean())
         out[f"h{h}/copy"] = float((first == real[:, h - 1]).float().mean())
+        if tok is not None:
+            grid = wm.spec.grid
+            ref = decoded(tok, real[:, h - 1].view(-1, *grid)).clamp(0, 1)  # (K, 3, S, 2S)
+            for name, toks in (("wm", pred[:, h - 1]), ("copy", first)):
+                img = decoded(tok, toks.reshape(-1, *grid)).clamp(0, 1)
+                out[f"h{h}/{name}/psnr"] = psnr(img, ref)
+                out[f"h{h}/{name}/psnr_third"] = psnr(img[..., : ref.shape[-2]], ref[..., : ref.shape[-2]])
     return out
 
 
-def evaluate(net, data: dict, cfg, device: str) -> dict:
+def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
+    """Mean per-image PSNR (dB) of (K, 3, H, W) images in [0, 1]."""
+    mse = ((img.float() - ref.float()) ** 2).flatten(1).mean(1).clamp_min(1e-10)
+    return float((-10 * torch.log10(mse)).mean())
+
+
+@torch.no_grad()
+def imagined_success(wm, episodes: list, theta: float, batch: int = 128) -> dict:
+    """Every episode imagined open loop from its first frame under all of its recorded actions: imagined
+    done (the done head reaches ``theta`` at some step) against the episode's real outcome (the simulator's
+    success at some frame). Near-misses and suboptimal demonstrations included, so this is the precision
+    of the world model's imagined successes on the planner's actions, comparable across token grids."""
+    h, w = wm.spec.grid
+    imagined, real, kinds = [], [], []
+    for b0 in range(0, len(episodes), batch):
+        eps = episodes[b0 : b0 + batch]
+        t_max = max(e.length for e in eps)
+        acts = torch.zeros(len(eps), t_max, 7)  # (B, T, 7), zero past an episode's end (its steps are not read)
+        for j, e in enumerate(eps):
+            acts[j, : e.length] = torch.from_numpy(e.actions)
+        lengths = torch.tensor([e.length for e in eps])
+        roll = wm.rollout(len(eps))
+        roll.reset(torch.stack([torch.from_numpy(e.tokens[0]) for e in eps]).view(len(eps), h, w))
+        peak = torch.zeros(len(eps))
+        for t in range(t_max):
+            p = roll.step(acts[:, t]).done_prob.float().cpu()
+            peak = torch.where(t < lengths, torch.maximum(peak, p), peak)
+        imagined += (peak >= theta).tolist()
+        real += [bool(e.done.max() > 0) for e in eps]
+        kinds += [e.kind for e in eps]
+    imagined, real = np.array(imagined), np.array(real)
+    out = {"episodes": len(real), "real_success": int(real.sum()), "imagined_done": int(imagined.sum()),
+           "both": int((imagined & real).sum()),
+           "precision": float((imagined & real).sum() / imagined.sum()) if imagined.sum() else float("nan"),
+           "recall": float((imagined & real).sum() / real.sum()) if real.sum() else float("nan")}
+    for kind in sorted(set(kinds)):
+        m = np.array([k == kind for k in kinds])
+        out[f"{kind}/imagined_done"] = f"{int(imagined[m].sum())}/{int(m.sum())} (real {int(real[m].sum())})"
+    return out
+
+
+def evaluate(net, data: dict, cfg, device: str, tok=None) -> dict:
     """The metrics above on the held-out IND and the OOD episodes (a split without episodes is left out)."""
     from stages.collect.plans import FAILURE_KINDS
     from stages.train_wm.evaluate import done_head_eval, false_alarm_rate
@@ -141,7 +215,8 @@ def evaluate(net, data: dict, cfg, device: str) -> dict:
         if not eps:
             continue
         out[split] = {"teacher_forced": teacher_forced(net, eps, data["text_emb"], cfg, device),
-                      "open_loop_token_acc": open_loop_acc(wm, eps),
+                      "open_loop_token_acc": open_loop_acc(wm, eps, tok=tok),
+                      "imagined_success": imagined_success(wm, eps, cfg.done_threshold),
                       "done": {k: v for k, v in done_head_eval(wm, eps, cfg.done_threshold, data["text_emb"]).items()
                                if k in ("auroc", "precision", "recall")},
                       "near_miss": false_alarm_rate(wm, [e for e in eps if e.kind in FAILURE_KINDS], cfg.done_threshold,
@@ -154,13 +229,20 @@ def train(args) -> None:
     from stages.train_wm.model import WorldModelNet
     from stages.train_wm.rollout import load_net
 
-    data = torch.load(args.data, weights_only=False)
+    data = load_data(args.data)
     if (args.finetune or args.with_play) and not data.get("play"):
         raise ValueError(f"--finetune / --with-play need play episodes: {args.data} was exported without --play-sft")
     for split in ("train", "heldout", "ood", "play"):
         for ep in data.get(split, []):
             ep.tokens = ep.tokens.astype(np.int64)
     dev = args.device
+    args.tok = None
+    if args.tokenizer is not None:
+        from stages.tokenize.tokenizer import load_tokenizer
+
+        args.tok = load_tokenizer(args.tokenizer, dev)
+        if tuple(args.tok.grid) != tuple(data["grid"]):
+            raise ValueError(f"--tokenizer {args.tokenizer} has grid {tuple(args.tok.grid)}, the data {tuple(data['grid'])}")
     results = {}
     if args.save_dir:
         args.save_dir.mkdir(parents=True, exist_ok=True)
@@ -168,7 +250,7 @@ def train(args) -> None:
         net = load_net(args.baseline, dev)
         t0 = time.perf_counter()
         results["baseline"] = {"params": sum(p.numel() for p in net.parameters()),
-                               "eval": evaluate(net, data, W.Config(**data["wm_config"]), dev)}
+                               "eval": evaluate(net, data, W.Config(**data["wm_config"]), dev, args.tok)}
         print("baseline", json.dumps(results["baseline"]), f"({time.perf_counter() - t0:.0f} s)", flush=True)
         if args.save_dir:
             (args.save_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
@@ -199,12 +281,91 @@ def fit(name: str, net, cfg, clips: list, steps: int, lr: float, sampler_seed: i
                           done_kind=cfg.done_loss, seed=seed, device=args.device, changed_weight=cfg.changed_weight,
                           done_balance=cfg.done_balance, context_noise=cfg.context_noise, self_context=cfg.self_context)
     results[name] = {**facts, "train_seconds": r["seconds"], "final": r["final"],
-                     "eval": evaluate(net, data, cfg, args.device)}
+                     "eval": evaluate(net, data, cfg, args.device, args.tok)}
+    if args.tok is not None and args.save_dir:
+        strip(net, data, cfg, args.tok, args.save_dir / f"{name}_strip.png")
     print(name, json.dumps(results[name]), flush=True)
     if args.save_dir:
         save_world_model(net.cpu(), args.save_dir / f"{name}.pt",
                          {"decode_steps": cfg.decode_steps, "temperature": cfg.temperature})
         (args.save_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+
+
+def assemble(args) -> None:
+    """A folder that loads as a train_wm artifact's action world model (``load_world_model``): the given
+    checkpoint as ``action_wm.pt``, a proprioception head trained here with train_wm's recipe on the
+    export's training episodes and tokenizer, and the export's instruction embeddings. With it the
+    policy checks (``scripts/replay_imagined.py``) imagine in a model trained elsewhere, on any grid."""
+    import shutil
+
+    import stages.train_wm as W
+    from stages.tokenize.tokenizer import load_tokenizer
+    from stages.train_wm.rollout import CHECKPOINTS, TEXT_EMBEDDINGS
+    from stages.train_wm.proprio import CHECKPOINT, ProprioHead, save_head, train_proprio_head, transitions
+    from stages.train_wm.rollout import load_net
+
+    data = load_data(args.data)
+    tok = load_tokenizer(args.tokenizer, "cpu")
+    net = load_net(args.net)
+    if tuple(net.spec.grid) != tuple(tok.grid) or tuple(data["grid"]) != tuple(tok.grid):
+        raise ValueError(f"grids differ: checkpoint {tuple(net.spec.grid)}, tokenizer {tuple(tok.grid)}, "
+                         f"export {tuple(data['grid'])}")
+    cfg = W.Config(**data["wm_config"])
+    for ep in data["train"]:
+        ep.tokens = ep.tokens.astype(np.int64)
+    torch.manual_seed(cfg.seed)
+    head = ProprioHead(tok.bits, tok.grid)
+    codes = lambda t: tok.codes(torch.from_numpy(t.reshape(len(t), *tok.grid)))  # noqa: E731  (n, N) -> (n, bits, h, w)
+    r = train_proprio_head(head, transitions(data["train"], codes), steps=cfg.proprio_steps,
+                           batch_size=cfg.proprio_batch_size, lr=cfg.proprio_lr, seed=cfg.seed, device="cpu")
+    args.out.mkdir(parents=True, exist_ok=True)
+    save_head(head, args.out / CHECKPOINT)
+    shutil.copyfile(args.net, args.out / CHECKPOINTS["action"])
+    (args.out / TEXT_EMBEDDINGS).write_text(json.dumps({k: np.asarray(v).tolist() for k, v in data["text_emb"].items()}) + "\n")
+    print(f"{args.out}: {CHECKPOINTS['action']} from {args.net}, {CHECKPOINT} ({r['seconds']:.0f} s, final loss "
+          f"{r['final']:.4f}), {TEXT_EMBEDDINGS}")
+
+
+@torch.no_grad()
+def strip(net, data: dict, cfg, tok, path: Path, envs: int = 4, steps: int = 24, every: int = 3) -> None:
+    """Third view of ``envs`` held-out IND (else OOD) episodes (successful ones first): imagined open loop from the
+    first frame under the recorded actions, over the real frame's tokens decoded, every ``every`` steps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from stages.train_wm.evaluate import decoded, open_loop, true_actions
+    from stages.train_wm.rollout import WorldModel
+
+    eps = sorted(data["heldout"] or data["ood"], key=lambda e: (e.done.max() <= 0, e.episode_id))
+    steps = min(steps, max((e.length for e in eps), default=0))
+    eps = [e for e in eps if e.length >= steps][:envs]
+    if not eps or steps < 1:
+        return
+    every = max(1, min(every, steps // 4))
+    wm = WorldModel(net.eval(), cfg.decode_steps, 0.0)
+    starts = [(i, 0) for i in range(len(eps))]
+    pred = open_loop(wm, eps, starts, steps, actions=true_actions(eps, starts, steps)).cpu()  # (E, steps, N)
+    shown = list(range(0, steps + 1, every))
+    fig, axes = plt.subplots(2 * len(eps), len(shown), figsize=(1.2 * len(shown), 2.5 * len(eps)), squeeze=False)
+    for j, e in enumerate(eps):
+        real = decoded(tok, torch.from_numpy(e.tokens[: steps + 1]).view(-1, *wm.spec.grid)).clamp(0, 1)
+        imag = torch.cat([real[:1], decoded(tok, pred[j].view(-1, *wm.spec.grid)).clamp(0, 1)])
+        size = real.shape[-2]
+        for c, t in enumerate(shown):
+            for r, (frames, label) in enumerate(((imag, "imagined"), (real, "real"))):
+                ax = axes[2 * j + r, c]
+                ax.imshow(frames[t, :, :, :size].permute(1, 2, 0).numpy())
+                ax.set_xticks([]), ax.set_yticks([])
+                if c == 0:
+                    ax.set_ylabel(f"{label}\n{e.kind}", fontsize=6)
+                if j == 0 and r == 0:
+                    ax.set_title(f"t={t}", fontsize=6)
+    fig.suptitle(f"open loop, recorded actions, grid {tuple(wm.spec.grid)}", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def main() -> None:
@@ -213,7 +374,9 @@ def main() -> None:
     e = sub.add_parser("export", help="write the action WM's training data of a store to one file")
     e.add_argument("collect", type=Path)
     e.add_argument("tokenize", type=Path)
-    e.add_argument("train_wm", type=Path, help="the train_wm artifact (its instruction embeddings)")
+    e.add_argument("train_wm", type=Path, nargs="?", default=None,
+                   help="the train_wm artifact (its config and instruction embeddings); without it train_wm's "
+                        "default config and freshly encoded instructions, e.g. for a tokenize artifact of another grid")
     e.add_argument("--out", type=Path, required=True)
     e.add_argument("--play-sft", type=Path, default=None,
                    help="an sft artifact: also record its policy's play as the wm_play stage does (for --finetune)")
@@ -235,11 +398,19 @@ def main() -> None:
     t.add_argument("--with-play", type=int, default=0,
                    help="models trained from scratch also train on the exported play, listed this many times")
     t.add_argument("--device", default="cpu")
+    t.add_argument("--tokenizer", type=Path, default=None,
+                   help="the tokenize artifact (or a folder with its tokenizer.pt) of the exported tokens: also "
+                        "decoded open-loop PSNR, and a frame strip per model in --save-dir")
     t.add_argument("--save-dir", type=Path, default=None, help="write m<i>.pt per trained model and results.json here")
+    a = sub.add_parser("assemble", help="a folder that loads as train_wm's action world model, from a checkpoint")
+    a.add_argument("data", type=Path, help="the exported file the checkpoint was trained on")
+    a.add_argument("--net", type=Path, required=True, help="an action world-model checkpoint (m<i>.pt of train)")
+    a.add_argument("--tokenizer", type=Path, required=True, help="the tokenize artifact of the export")
+    a.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
-    if args.cmd == "export" or args.device == "cpu":
+    if args.cmd != "train" or args.device == "cpu":
         torch.set_num_threads(1)
-    export(args) if args.cmd == "export" else train(args)
+    {"export": export, "train": train, "assemble": assemble}[args.cmd](args)
 
 
 if __name__ == "__main__":

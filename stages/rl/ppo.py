@@ -2,7 +2,7 @@
 
 Same network, same weights, same per-dimension action noise (the sft stage sets it from its
 held-out residuals); the actor and the critic have separate feature extractors (``TaskPolicy``).
-On top of SB3's PPO, three guards, each set in the rl config (docs/rl.md):
+On top of SB3's PPO, seven guards, each set in the rl config (docs/rl.md):
   - value warm-up: the first ``value_warmup_updates`` updates train the critic only, on rollouts
     of the unchanged SFT policy, so the first policy gradients use a value function that fits it;
   - ``target_kl``: SB3's early stop of an update's epochs once the policy moved that far;

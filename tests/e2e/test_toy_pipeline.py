@@ -329,3 +329,23 @@ def test_the_world_model_probe_trains_and_fine_tunes_on_an_exported_store(store,
     tuned, orig = load_net(out / "action_wm_play.pt"), load_net(base)
     assert tuned.spec == orig.spec == load_net(out / "m0.pt").spec  # the artifact's config, not the defaults
     assert any(not torch.equal(v, orig.state_dict()[k]) for k, v in tuned.state_dict().items())
+    for split, m in results["m0"]["eval"].items():  # the planner's actions imagined open loop, whole episodes
+        imag = m["imagined_success"]
+        assert imag["episodes"] > 0, (split, imag)
+        assert 0 <= imag["both"] <= min(imag["imagined_done"], imag["real_success"]) <= imag["episodes"], imag
+
+    # without a train_wm artifact (a tokenize artifact of another grid): train_wm's defaults, instructions
+    # encoded afresh; with --tokenizer: decoded PSNR per horizon and a frame strip
+    bare, out2 = tmp_path / "bare.pt", tmp_path / "out2"
+    p = run("export", ups["collect"], ups["tokenize"], "--out", bare)
+    assert p.returncode == 0, p.stderr[-3000:]
+    p = run("train", bare, '{"action_steps": 2}', "--tokenizer", ups["tokenize"], "--save-dir", out2)
+    assert p.returncode == 0, p.stderr[-3000:]
+    ev = json.loads((out2 / "results.json").read_text())["m0"]["eval"]
+    for split, m in ev.items():
+        acc = m["open_loop_token_acc"]
+        psnrs = [v for k, v in acc.items() if k.endswith("/psnr") or k.endswith("/psnr_third")]
+        assert psnrs and all(np.isfinite(v) and v > 0 for v in psnrs), (split, acc)
+    assert (out2 / "m0_strip.png").stat().st_size > 0
+    p = run("export", ups["collect"], ups["tokenize"], "--out", bare, "--play-sft", ups["sft"])
+    assert p.returncode != 0 and "needs the train_wm artifact" in p.stderr
