@@ -18,6 +18,15 @@ two steps:
     python scripts/wm_size_probe.py train .probe/data.pt '{"batch_size": 32, "action_steps": 6000}' ... \
         --baseline <train_wm>/action_wm.pt --device cuda --save-dir $OUT
 
+    # a tokenize artifact no world model was trained on (another grid): no train_wm argument (its
+    # default config, instructions encoded here); --tokenizer adds decoded PSNR and a strip per model
+    PYTHONPATH=. .venv/bin/python scripts/wm_size_probe.py export <collect> <tokenize> --out .probe/d16.pt
+    python scripts/wm_size_probe.py train .probe/d16.pt '{...}' --tokenizer <tokenize> --device cuda --save-dir $OUT
+
+    # here: a folder that loads as a train_wm artifact (proprioception head trained with its recipe)
+    PYTHONPATH=. .venv/bin/python scripts/wm_size_probe.py assemble .probe/d16.pt --net m0.pt \
+        --tokenizer <tokenize> --out DIR     # then: scripts/replay_imagined.py <collect> <tokenize> DIR <sft> ...
+
 Each saved checkpoint is the stage's format (``save_world_model``): ``scripts/replay_imagined.py
 ... --wm-net FILE`` imagines in it (the train_wm artifact's proprioception head and decoding stay),
 ``scripts/wm_ablation.py <collect> <tokenize> '{}' --load FILE`` decodes it for PSNR / LPIPS.
@@ -26,6 +35,8 @@ Metrics (held-out IND episodes and OOD episodes): teacher-forced token cross-ent
 of hidden tokens (the training loss's masking, fixed seed), open-loop token accuracy at horizons
 1, 5, 15 from real start frames under the recorded actions (next to copy-last), done-head AUROC
 on real sequences and the near-miss false-alarm rate at train_wm's done_threshold (the stage's metrics).
+``imagined_success``: every held-out / OOD episode imagined open loop from its first frame under its
+recorded actions, imagined done against the real outcome, per trajectory kind (near-misses included).
 """
 from __future__ import annotations
 
