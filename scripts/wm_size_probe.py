@@ -173,9 +173,13 @@ def open_loop_acc(wm, episodes: list, horizons=(1, 5, 15), per_episode: int = 4,
 
 
 def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
-    """Mean per-image PSNR (dB) of (K, 3, H, W) images in [0, 1]."""
-    mse = ((img.float() - ref.float()) ** 2).flatten(1).mean(1).clamp_min(1e-10)
-    return float((-10 * torch.log10(mse)).mean())
+    """Mean per-image PSNR (dB) of (K, 3, H, W) images in [0, 1]; identical images (+inf) left out, as
+    train_wm's evaluation does."""
+    from stages.common import image_metrics
+
+    v = image_metrics.psnr(img, ref).double()
+    v = v[torch.isfinite(v)]
+    return float(v.mean()) if len(v) else float("nan")
 
 
 @torch.no_grad()
@@ -311,9 +315,8 @@ def assemble(args) -> None:
 
     import stages.train_wm as W
     from stages.tokenize.tokenizer import load_tokenizer
-    from stages.train_wm.rollout import CHECKPOINTS, TEXT_EMBEDDINGS
     from stages.train_wm.proprio import CHECKPOINT, ProprioHead, save_head, train_proprio_head, transitions
-    from stages.train_wm.rollout import load_net
+    from stages.train_wm.rollout import CHECKPOINTS, TEXT_EMBEDDINGS, load_net
 
     data = load_data(args.data)
     tok = load_tokenizer(args.tokenizer, "cpu")
