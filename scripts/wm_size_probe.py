@@ -23,6 +23,13 @@ two steps:
     PYTHONPATH=. .venv/bin/python scripts/wm_size_probe.py export <collect> <tokenize> --out .probe/d16.pt
     python scripts/wm_size_probe.py train .probe/d16.pt '{...}' --tokenizer <tokenize> --device cuda --save-dir $OUT
 
+    # here: another collect (e.g. a re-collection with another trajectory mix) tokenized with an existing
+    # tokenizer, as the tokenize stage encodes and splits; then export from that folder; train two models
+    # that differ only in one kind of training data (the evaluation keeps every kind)
+    PYTHONPATH=. .venv/bin/python scripts/wm_size_probe.py encode <collect2> <tokenize> --out .probe/enc
+    PYTHONPATH=. .venv/bin/python scripts/wm_size_probe.py export <collect2> .probe/enc --out .probe/d.pt
+    python scripts/wm_size_probe.py train .probe/d.pt '{}' [--exclude-kinds grasp_miss] --save-dir DIR
+
     # here: a folder that loads as a train_wm artifact (proprioception head trained with its recipe)
     PYTHONPATH=. .venv/bin/python scripts/wm_size_probe.py assemble .probe/d16.pt --net m0.pt \
         --tokenizer <tokenize> --out DIR     # then: scripts/replay_imagined.py <collect> <tokenize> DIR <sft> ...
@@ -34,7 +41,7 @@ Each saved checkpoint is the stage's format (``save_world_model``): ``scripts/re
 Metrics (held-out IND episodes and OOD episodes): teacher-forced token cross-entropy and accuracy
 of hidden tokens (the training loss's masking, fixed seed), open-loop token accuracy at horizons
 1, 5, 15 from real start frames under the recorded actions (next to copy-last), done-head AUROC
-on real sequences and the near-miss false-alarm rate at train_wm's done_threshold (the stage's metrics).
+on real sequences and each failure kind's false-alarm rate at train_wm's done_threshold (the stage's metrics).
 ``imagined_success``: every held-out / OOD episode imagined open loop from its first frame under its
 recorded actions, imagined done against the real outcome, per trajectory kind (near-misses included).
 """
@@ -85,6 +92,32 @@ def export(args) -> None:
     args.out.write_bytes(gzip.compress(buf.getvalue(), compresslevel=6))  # the GPU machine takes 64 MiB in all
     print(f"{len(train)} train / {len(held)} held-out IND / {len(ood)} OOD / {len(play)} play episodes -> {args.out} "
           f"({args.out.stat().st_size / 2**20:.1f} MiB)")
+
+
+def encode(args) -> None:
+    """A folder that reads as a tokenize artifact of ``args.collect`` (``tokens.npy``, ``index.json``,
+    ``split.json``, ``tokenizer.pt``) made with another collect's tokenizer, not trained again: the
+    tokenize stage's own encoding and held-out rule (its seed and fraction), so a re-collected store
+    (another trajectory mix) is compared under one fixed tokenizer."""
+    import shutil
+
+    from stages.tokenize import Config as TokConfig
+    from stages.tokenize import encode_all, heldout_split, open_dataset, write_split
+    from stages.tokenize.tokenizer import CHECKPOINT, load_tokenizer
+
+    tcfg = TokConfig(**json.loads((args.tokenize / "manifest.json").read_text())["key_inputs"]["config"])
+    ds = open_dataset(args.collect)
+    args.out.mkdir(parents=True, exist_ok=True)
+    train_eps, held = heldout_split([e for e in ds.episodes if e.split == "ind"], tcfg.holdout_fraction,
+                                    np.random.default_rng(tcfg.seed))
+    write_split(args.out, train_eps, held)
+    shutil.copyfile(args.tokenize / CHECKPOINT, args.out / CHECKPOINT)
+    t0 = time.perf_counter()
+    usage = encode_all(args.out, ds, load_tokenizer(args.tokenize, "cpu"), tcfg.encode_batch)
+    (args.out / "encoded.json").write_text(json.dumps({"collect": str(args.collect), "tokenizer": str(args.tokenize),
+                                                        **usage}, indent=1) + "\n")
+    print(f"{args.out}: {usage['episodes']} episodes, {usage['frames']} frames, {len(held)} IND held out, "
+          f"{time.perf_counter() - t0:.0f} s")
 
 
 def load_data(path: Path) -> dict:
@@ -234,8 +267,8 @@ def evaluate(net, data: dict, cfg, device: str, tok=None) -> dict:
                       "imagined_success": imagined_success(wm, eps, cfg.done_threshold),
                       "done": {k: v for k, v in done_head_eval(wm, eps, cfg.done_threshold, data["text_emb"]).items()
                                if k in ("auroc", "precision", "recall")},
-                      "near_miss": false_alarm_rate(wm, [e for e in eps if e.kind in FAILURE_KINDS], cfg.done_threshold,
-                                                    data["text_emb"])}
+                      **{kind: false_alarm_rate(wm, [e for e in eps if e.kind == kind], cfg.done_threshold, data["text_emb"])
+                         for kind in FAILURE_KINDS}}
     return out
 
 
@@ -279,9 +312,11 @@ def train(args) -> None:
         torch.manual_seed(cfg.seed)
         net = WorldModelNet(W.model_spec(cfg, "action", data["vocab"], data["grid"])).to(dev)
         net.set_action_stats(torch.from_numpy(np.concatenate([e.actions for e in data["train"]])).to(dev))
-        clips = W.training_episodes(data["train"], "action", cfg.done_negatives) + data["play"] * args.with_play
+        clips = [e for e in W.training_episodes(data["train"], "action", cfg.done_negatives)
+                 if e.kind not in args.exclude_kinds] + data["play"] * args.with_play
         fit(f"m{i}", net, cfg, clips, cfg.action_steps, cfg.lr, cfg.seed, cfg.seed, data, args, results,
-            {"overrides": overrides, "with_play": args.with_play, "params": sum(p.numel() for p in net.parameters())})
+            {"overrides": overrides, "with_play": args.with_play, "exclude_kinds": args.exclude_kinds,
+             "train_episodes": len(clips), "params": sum(p.numel() for p in net.parameters())})
 
 
 def fit(name: str, net, cfg, clips: list, steps: int, lr: float, sampler_seed: int, seed: int, data: dict, args,
@@ -294,7 +329,8 @@ def fit(name: str, net, cfg, clips: list, steps: int, lr: float, sampler_seed: i
     r = train_world_model(net.to(args.device), ClipSampler(clips, cfg.window, data["text_emb"], sampler_seed), steps=steps,
                           batch_size=cfg.batch_size, lr=lr, weight_decay=cfg.weight_decay, done_weight=cfg.done_weight,
                           done_kind=cfg.done_loss, seed=seed, device=args.device, changed_weight=cfg.changed_weight,
-                          done_balance=cfg.done_balance, context_noise=cfg.context_noise, self_context=cfg.self_context)
+                          done_balance=cfg.done_balance, context_noise=cfg.context_noise, self_context=cfg.self_context,
+                          log=_stdout_log(), desc=name)
     results[name] = {**facts, "train_seconds": r["seconds"], "final": r["final"],
                      "eval": evaluate(net, data, cfg, args.device, args.tok)}
     if args.tok is not None and args.save_dir:
@@ -304,6 +340,21 @@ def fit(name: str, net, cfg, clips: list, steps: int, lr: float, sampler_seed: i
         save_world_model(net.cpu(), args.save_dir / f"{name}.pt",
                          {"decode_steps": cfg.decode_steps, "temperature": cfg.temperature})
         (args.save_dir / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+
+
+def _stdout_log():
+    """A logger that prints train_world_model's progress lines (every tenth of the steps) with the time."""
+    import logging
+    import sys
+
+    log = logging.getLogger("wm_size_probe")
+    if not log.handlers:
+        h = logging.StreamHandler(sys.stdout)
+        h.setFormatter(logging.Formatter("%(asctime)s %(message)s", "%H:%M:%S"))
+        log.addHandler(h)
+        log.setLevel(logging.INFO)
+        log.propagate = False
+    return log
 
 
 def assemble(args) -> None:
@@ -396,6 +447,10 @@ def main() -> None:
                    help="an sft artifact: also record its policy's play as the wm_play stage does (for --finetune)")
     e.add_argument("--play-episodes", type=int, default=384, help="play episodes (wm_play.episodes)")
     e.add_argument("--play-steps", type=int, default=75, help="policy steps per play episode at most (wm_play.max_episode_steps)")
+    c = sub.add_parser("encode", help="tokenize a collect artifact with another collect's tokenizer (no training)")
+    c.add_argument("collect", type=Path)
+    c.add_argument("tokenize", type=Path, help="the tokenize artifact whose tokenizer (config: seed, held-out fraction) is used")
+    c.add_argument("--out", type=Path, required=True, help="a folder that then reads as a tokenize artifact of the collect")
     t = sub.add_parser("train", help="train and evaluate action WMs on an exported file")
     t.add_argument("data", type=Path)
     t.add_argument("overrides", type=json.loads, nargs="*",
@@ -411,6 +466,9 @@ def main() -> None:
     t.add_argument("--play-weight", type=int, default=2)
     t.add_argument("--with-play", type=int, default=0,
                    help="models trained from scratch also train on the exported play, listed this many times")
+    t.add_argument("--exclude-kinds", nargs="*", default=[],
+                   help="trajectory kinds left out of the training clips of models trained from scratch (e.g. grasp_miss); "
+                        "the evaluation keeps every kind")
     t.add_argument("--device", default="cpu")
     t.add_argument("--tokenizer", type=Path, default=None,
                    help="the tokenize artifact (or a folder with its tokenizer.pt) of the exported tokens: also "
@@ -422,9 +480,9 @@ def main() -> None:
     a.add_argument("--tokenizer", type=Path, required=True, help="the tokenize artifact of the export")
     a.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
-    if args.cmd != "train" or args.device == "cpu":
-        torch.set_num_threads(1)
-    {"export": export, "train": train, "assemble": assemble}[args.cmd](args)
+    if args.cmd != "encode" and (args.cmd != "train" or args.device == "cpu"):
+        torch.set_num_threads(1)  # models side by side on the 2 cores; encode runs alone, on torch's default
+    {"export": export, "encode": encode, "train": train, "assemble": assemble}[args.cmd](args)
 
 
 if __name__ == "__main__":

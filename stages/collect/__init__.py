@@ -1,9 +1,10 @@
 """collect: planned robot trajectories in ManiSkill3 scenes, recorded into MCAP shards.
 
 Four tabletop tasks (pick & place, push, pull, move to aim) in scenes built from primitives
-(object x container x table, ``catalog.py``); optimal trajectories through the essential waypoints
-the paper's three suboptimal kinds and near-miss failures (``plans.py``; labelled done-head
-negatives, never demonstrations), planned by MPLib and recorded as delta-EE
+(object x container x table, ``catalog.py``); optimal trajectories through the essential waypoints,
+the paper's three suboptimal kinds, and two failure kinds, near-misses (the end beside the goal) and
+grasp-misses (the grasp or contact beside the object) (``plans.py``; labelled negatives of the world
+model, never demonstrations), planned by MPLib and recorded as delta-EE
 actions under ``pd_ee_delta_pose`` (``execute.py``), one shard per worker task (``worker.py``).
 
 Inputs:
@@ -23,9 +24,10 @@ Key includes:
     mesh, retry and step limits, seed. Not ``jobs`` (parallelism never changes the data).
 
 Toy profile:
-    all four tasks on 1 IND and 1 OOD scene, one optimal + one suboptimal + one near-miss trajectory
-    per scene and task (24 episodes), every successful optimal episode replayed open-loop; ~2 min on
-    2 cores. The defaults (``small``): 24 IND + 8 OOD scenes, 768 episodes (docs/collect.md says why).
+    all four tasks on 1 IND and 1 OOD scene, one optimal + one suboptimal + one near-miss + one
+    grasp-miss trajectory per scene and task (32 episodes), every successful optimal episode replayed
+    open-loop; ~2 min on 2 cores. The defaults (``small``): 24 IND + 8 OOD scenes, 896 episodes
+    (docs/collect.md says why).
 """
 from __future__ import annotations
 
@@ -70,6 +72,9 @@ class Config(BaseModel):
     max_retries: int = Field(3, ge=0, description="new seeds tried after a failed plan or an unsuccessful execution")
     near_miss_per_scene: int = Field(1, ge=0, description="near-miss failures per scene and task (IND and OOD): "
                                      "labelled done-head negatives, never demonstrations (plans.near_miss_plan)")
+    grasp_miss_per_scene: int = Field(1, ge=0, description="grasp-miss failures per scene and task (IND and OOD): the "
+                                      "gripper closes / slides beside the object; labelled negatives of the world model, "
+                                      "never demonstrations (plans.grasp_miss_plan)")
     keep_failed: bool = Field(False, description="also write episodes whose execution did not succeed")
     replay_fraction: float = Field(0.1, ge=0, le=1, description="fraction of successful optimal episodes replayed open-loop to verify actions")
     episodes_per_shard: int = Field(8, ge=1, description="episodes per MCAP shard (one worker task)")
@@ -97,7 +102,7 @@ def plan_jobs(cfg: Config, scenes, shard_dir) -> list[dict]:
         for scene, n_opt in [(s, cfg.optimal_per_scene) for s in ind] + [(s, cfg.ood_optimal_per_scene) for s in ood]:
             n_sub = int(round(n_opt * cfg.suboptimal_ratio))
             kinds = (["optimal"] * n_opt + [SUBOPTIMAL_KINDS[(n + j) % 3] for j in range(n_sub)]
-                     + ["near_miss"] * cfg.near_miss_per_scene)
+                     + ["near_miss"] * cfg.near_miss_per_scene + ["grasp_miss"] * cfg.grasp_miss_per_scene)
             for j, kind in enumerate(kinds):
                 episodes.append(dict(
                     episode_id=f"{task}.{scene.scene_id}.{kind}.{j}", scene=scene.to_dict(), kind=kind,
@@ -156,7 +161,7 @@ def run(ctx: StageContext) -> None:
             episodes=tot.get("written", 0), frames=tot.get("frames", 0), attempts=tot.get("attempts", 0),
             retries=tot.get("retries", 0), dropped=tot.get("dropped", 0),
             plan_failures=tot.get("plan_failures", 0), exec_failures=tot.get("exec_failures", 0),
-            near_miss_unintended_successes=tot.get("unintended_successes", 0),
+            failure_unintended_successes=tot.get("unintended_successes", 0),
             planner_success_rate=_rate(tot.get("attempts", 0) - tot.get("plan_failures", 0), tot.get("attempts", 0)),
             execution_success_rate=_rate(tot.get("attempts", 0) - tot.get("plan_failures", 0) - tot.get("exec_failures", 0),
                                          tot.get("attempts", 0) - tot.get("plan_failures", 0)),
@@ -171,7 +176,7 @@ def run(ctx: StageContext) -> None:
         episodes_by_kind={k: sum(m.kind == k for m in metas) for k in KINDS},
         scenes=len(scenes), scenes_collected=len({m.scene_id for m in metas}),
         attempts=attempts, retries=tot("retries"), dropped=tot("dropped"),
-        near_miss_unintended_successes=tot("near_miss_unintended_successes"),
+        failure_unintended_successes=tot("failure_unintended_successes"),
         planner_success_rate=_rate(attempts - tot("plan_failures"), attempts),
         execution_success_rate=_rate(attempts - tot("plan_failures") - tot("exec_failures"), attempts - tot("plan_failures")),
         replayed=tot("replayed"),

@@ -12,10 +12,15 @@ Suboptimal kinds (paper §4.1), each derived from the optimal plan of the same e
   - ``grasp_disturb``: small pose disturbances (~1-2 cm, ~0.15 rad) just before the grasp / contact
     waypoint and the place waypoint; for push / pull, a sideways wobble (<= 0.9 cm) mid-slide.
 
-One failure kind (beyond the paper), the world model's done-head negatives, never a demonstration:
+Two failure kinds (beyond the paper), the world model's negatives, never a demonstration:
   - ``near_miss``: the optimal plan that misses at the end: the object is carried and released
     8-13 cm beside its target (pick & place, move to aim), or the slide stops after 15-60% of its
     distance (push, pull). Its last frames look like a finished demonstration but are not.
+  - ``grasp_miss``: the optimal plan that misses at the start: the gripper descends and closes 5-6.5 cm
+    beside the object (across the fingers' closing direction, so neither finger touches it) and then
+    carries nothing to the target (pick & place, move to aim), or the closed fingers slide past the
+    object 5-6.5 cm to its side (push, pull). Without it every recorded contact moves the object, and a
+    world model learns that the object follows a closing gripper wherever it closes.
 """
 from __future__ import annotations
 
@@ -24,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 SUBOPTIMAL_KINDS = ("waypoint_noise", "interpolate", "grasp_disturb")
-FAILURE_KINDS = ("near_miss",)
+FAILURE_KINDS = ("near_miss", "grasp_miss")
 KINDS = ("optimal", *SUBOPTIMAL_KINDS, *FAILURE_KINDS)
 
 
@@ -137,6 +142,8 @@ def suboptimal_plan(opt: list, kind: str, rng: np.random.Generator, *, rot_sigma
         return list(opt)
     if kind == "near_miss":
         return near_miss_plan(opt, rng)
+    if kind == "grasp_miss":
+        return grasp_miss_plan(opt, rng)
     out: list = []
     prev_pose = None
     for step in opt:
@@ -181,6 +188,43 @@ def near_miss_plan(opt: list, rng: np.random.Generator, *, offset: tuple = (0.08
         angle = rng.uniform(0.0, 2.0 * np.pi)
         shift = rng.uniform(*offset) * np.array([np.cos(angle), np.sin(angle), 0.0])
     moved = ("slide", "retreat") if "slide" in moves else ("carry", "place", "retreat")
+    for step in opt:
+        if isinstance(step, Move) and step.role in moved:
+            step = Move(_pose(np.asarray(step.pose[:3]) + shift, step.pose[3:]), label=step.label, role=step.role)
+        out.append(step)
+    return out
+
+
+def _quat_axis(q, i: int) -> np.ndarray:
+    """Column ``i`` of the rotation matrix of quaternion ``q`` (wxyz): the frame's i-th axis in the world."""
+    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])[:, i]
+
+
+def grasp_miss_plan(opt: list, rng: np.random.Generator, *, offset: tuple = (0.05, 0.065)) -> list:
+    """``opt`` whose grasp / contact lands beside the object: the approach shifted sideways, the rest as planned.
+
+    Pick & place, move to aim: pre, grasp and lift move ``offset`` metres along the grasp frame's x
+    axis (horizontal, across the closing direction, its y axis), so the fingers close in the air
+    beside the object and carry nothing. Push, pull: pre, contact, slide and retreat move sideways
+    (world y, across the slide), so the closed fingers pass beside the object. The 5 cm lower bound
+    clears the largest object (3 cm half extent) plus a finger pad's half width with 1 cm to spare.
+    """
+    moves = {s.role: s for s in opt if isinstance(s, Move)}
+    sign = 1.0 if rng.random() < 0.5 else -1.0
+    if "slide" in moves:
+        side = np.array([0.0, 1.0, 0.0])
+        moved = ("pre", "contact", "slide", "retreat")
+    else:
+        side = _quat_axis(moves["grasp"].pose[3:], 0) * [1.0, 1.0, 0.0]
+        side /= max(np.linalg.norm(side), 1e-9)
+        moved = ("pre", "grasp", "lift")
+    shift = sign * rng.uniform(*offset) * side  # (3,) metres, horizontal
+    out: list = []
     for step in opt:
         if isinstance(step, Move) and step.role in moved:
             step = Move(_pose(np.asarray(step.pose[:3]) + shift, step.pose[3:]), label=step.label, role=step.role)

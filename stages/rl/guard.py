@@ -2,7 +2,7 @@
 
 ``guard_heads`` small classifiers read the action world model's hidden state of a frame (as the
 ``embedding`` reward head does) and predict the simulator's success flag. Each is fitted on its own
-bootstrap resample of frames from IND training episodes, near-miss failures included, with the two
+bootstrap resample of frames from IND training episodes, collect's failures included, with the two
 classes weighted equally. Where the policy has driven the world model somewhere the data never
 went, the heads disagree. With ``rl.guard`` on, the world-model environment
   - subtracts ``guard_coef * max_step_reward * std`` of the ensemble's probabilities every step, and

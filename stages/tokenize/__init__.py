@@ -25,6 +25,7 @@ Toy profile:
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -90,6 +91,19 @@ def open_dataset(path):
     return Dataset(path)
 
 
+def heldout_split(ind: list, fraction: float, rng: np.random.Generator) -> tuple[list, list]:
+    """(train, held-out) IND episodes: a random ``fraction`` held out (at least one when there are two)."""
+    order = rng.permutation(len(ind))
+    n_hold = 0 if len(ind) < 2 or fraction == 0 else max(1, round(fraction * len(ind)))
+    return [ind[i] for i in sorted(order[n_hold:])], [ind[i] for i in order[:n_hold]]
+
+
+def write_split(out: Path, train_eps: list, held: list) -> None:
+    """``split.json``: the episode ids the tokenizer trained on and those held out of every stage's training."""
+    (out / "split.json").write_text(json.dumps({"train": [e.episode_id for e in train_eps],
+                                                "heldout": [e.episode_id for e in held]}, indent=1) + "\n")
+
+
 def _load_frames(ds, episodes, max_frames: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Both views of a random subset of at most ``max_frames`` frames of ``episodes`` (EpisodeMeta), (N, H, W, 3) uint8.
 
@@ -132,11 +146,8 @@ def run(ctx: StageContext) -> None:
     ood = [e for e in ds.episodes if e.split == "ood"]
     if not ind:
         raise ValueError(f"collect artifact {ctx.input('collect')} has no IND episodes to train the tokenizer on")
-    order = rng.permutation(len(ind))
-    n_hold = 0 if len(ind) < 2 or cfg.holdout_fraction == 0 else max(1, round(cfg.holdout_fraction * len(ind)))
-    held = [ind[i] for i in order[:n_hold]]
-    train_eps = [ind[i] for i in sorted(order[n_hold:])]
-    (ctx.out / "split.json").write_text(json.dumps({"train": [e.episode_id for e in train_eps], "heldout": [e.episode_id for e in held]}, indent=1) + "\n")
+    train_eps, held = heldout_split(ind, cfg.holdout_fraction, rng)
+    write_split(ctx.out, train_eps, held)
     ctx.log.info("tokenize: %d IND train episodes, %d held out, %d OOD", len(train_eps), len(held), len(ood))
 
     third, wrist = _load_frames(ds, train_eps, cfg.max_train_frames, rng)
@@ -170,33 +181,35 @@ def run(ctx: StageContext) -> None:
     save_recon_figure(ctx.out / "recon.png", panels)
 
     tokenizer = Tokenizer(net, ctx.device)
-    metrics.update({f"all/{k}": v for k, v in _encode_all(ctx, ds, tokenizer, cfg.encode_batch).items()})
+    with ctx.progress(len(ds.episodes), "tokenize encode", unit="ep") as bar:
+        metrics.update({f"all/{k}": v for k, v in encode_all(ctx.out, ds, tokenizer, cfg.encode_batch, bar).items()})
     metrics.update({"bits": cfg.bits, "vocab_size": 2**cfg.bits, "grid": list(tokenizer.grid), "tokens_per_frame": tokenizer.grid[0] * tokenizer.grid[1]})
     ctx.write_metrics(metrics)
     ctx.log.info("tokenize: done in %.0f s of training; metrics %s", hist.seconds,
                  {k: round(v, 4) for k, v in metrics.items() if isinstance(v, float) and "/" in k})
 
 
-def _encode_all(ctx: StageContext, ds, tok: Tokenizer, batch: int) -> dict:
-    """Tokenize every frame of every episode into ``tokens.npy`` + ``index.json``; codebook usage over all."""
+def encode_all(out: Path, ds, tok: Tokenizer, batch: int, bar=None) -> dict:
+    """Tokenize every frame of every episode of ``ds`` into ``out/tokens.npy`` + ``out/index.json``; codebook
+    usage over all. ``bar``: a progress bar (``update(n)``) or None."""
     episodes = ds.episodes
     offsets, n = {}, 0
     for e in episodes:
         offsets[e.episode_id] = (n, e.length + 1)
         n += e.length + 1
-    tokens = np.lib.format.open_memmap(ctx.out / TOKENS, mode="w+", dtype=np.uint16, shape=(n, *tok.grid))  # (N_frames, h, w)
+    tokens = np.lib.format.open_memmap(out / TOKENS, mode="w+", dtype=np.uint16, shape=(n, *tok.grid))  # (N_frames, h, w)
     counts = np.zeros(tok.vocab_size, dtype=np.int64)
-    with ctx.progress(len(episodes), "tokenize encode", unit="ep") as bar:
-        for e in episodes:
-            ep = ds.load(e.episode_id)
-            off, length = offsets[e.episode_id]
-            if len(ep.third) != length:
-                raise ValueError(f"episode {e.episode_id}: index says length {e.length} (so {length} frames) but it has {len(ep.third)} frames")
-            ids = tok.encode(ep.third, ep.wrist, batch_size=batch).cpu().numpy()  # (T+1, h, w)
-            tokens[off : off + length] = ids.astype(np.uint16)
-            counts += np.bincount(ids.ravel(), minlength=tok.vocab_size)
+    for e in episodes:
+        ep = ds.load(e.episode_id)
+        off, length = offsets[e.episode_id]
+        if len(ep.third) != length:
+            raise ValueError(f"episode {e.episode_id}: index says length {e.length} (so {length} frames) but it has {len(ep.third)} frames")
+        ids = tok.encode(ep.third, ep.wrist, batch_size=batch).cpu().numpy()  # (T+1, h, w)
+        tokens[off : off + length] = ids.astype(np.uint16)
+        counts += np.bincount(ids.ravel(), minlength=tok.vocab_size)
+        if bar is not None:
             bar.update(1)
     tokens.flush()
     del tokens
-    write_index(ctx.out, tok.grid, tok.bits, offsets)
+    write_index(out, tok.grid, tok.bits, offsets)
     return {"frames": int(n), "episodes": len(episodes), **training.usage_from_counts(counts)}

@@ -20,8 +20,8 @@ Outputs (in the artifact directory):
                                copy-last-frame baseline and the tokenizer ceiling, controllability
                                (true vs shuffled actions), extreme-action rollouts; done-head AUROC,
                                precision / recall at ``done_threshold``, Brier, ECE for both models,
-                               and their false alarms on near-miss episodes (collect's done-head
-                               negatives; the text WM trains on the other episodes only);
+                               and their false alarms on near-miss and grasp-miss episodes
+                               (collect's failures; the text WM trains on the other episodes only);
                                proprioception head: TCP error (cm) at horizons 1, 5, 15 vs copy-last
     frames.png                 real vs predicted frame strips (held-out IND and OOD)
     tensorboard/               training curves (both world models' losses, the proprioception head's)
@@ -83,8 +83,8 @@ class Config(BaseModel):
     done_weight: float = Field(1.0, ge=0, description="weight of the done loss next to the token cross-entropy")
     done_balance: bool = Field(True, description="done and not-done frames weigh half each in the done loss "
                                "(success frames are few: the last frames of successful episodes)")
-    done_negatives: bool = Field(True, description="the action WM also trains on collect's near-miss episodes "
-                                 "(done-head negatives: never done); false = successful and suboptimal episodes only "
+    done_negatives: bool = Field(True, description="the action WM also trains on collect's failure episodes, "
+                                 "near-misses and grasp-misses (never done); false = successful and suboptimal episodes only "
                                  "(the ablation)")
     changed_weight: float = Field(4.0, ge=1, description="cross-entropy weight of target tokens that changed since the "
                                   "previous frame (4 vs 1: h5 PSNR 24.79 vs 23.20 and 4x the gap to shuffled actions, "
@@ -118,9 +118,10 @@ def model_spec(cfg: Config, kind: str, vocab: int, grid: tuple[int, int]) -> WMS
 def training_episodes(episodes: list, kind: str, done_negatives: bool) -> list:
     """The episodes the ``kind`` world model trains on.
 
-    The text WM imagines goals from instructions: failures (near-misses) would teach it that an
-    instruction may end beside its goal, so it never sees them. The action WM trains on all of them
-    (its done head learns from the near-misses' never-done frames) unless ``done_negatives`` is off.
+    The text WM imagines goals from instructions: failures (near-misses, grasp-misses) would teach it
+    that an instruction may end beside its goal, so it never sees them. The action WM trains on all of
+    them (its done head learns from their never-done frames, its dynamics that a gripper closing
+    beside the object leaves it where it is) unless ``done_negatives`` is off.
     """
     if kind == "action" and done_negatives:
         return list(episodes)
@@ -235,13 +236,14 @@ def _evaluate(ctx, cfg: Config, models: dict, held_eps: list, ood_eps: list, tex
         if not eps:
             ctx.log.warning("train_wm: no %s episodes, no metrics for that split", split)
             continue
-        misses = [e for e in eps if e.kind in FAILURE_KINDS]
+        misses = {f: [e for e in eps if e.kind == f] for f in FAILURE_KINDS}
         eps = [eps[i] for i in sorted(rng.choice(len(eps), size=min(cfg.eval_episodes, len(eps)), replace=False))]
         for kind, wm in models.items():
             for k, v in done_head_eval(wm, eps, cfg.done_threshold, text_emb).items():
                 metrics[f"{kind}_wm/{split}/done/{k}"] = v
-            for k, v in false_alarm_rate(wm, misses, cfg.done_threshold, text_emb).items():
-                metrics[f"{kind}_wm/{split}/done/near_miss/{k}"] = v
+            for failure, fail_eps in misses.items():
+                for k, v in false_alarm_rate(wm, fail_eps, cfg.done_threshold, text_emb).items():
+                    metrics[f"{kind}_wm/{split}/done/{failure}/{k}"] = v
         starts = rollout_starts(eps, max(HORIZONS), cfg.eval_starts, rng)
         if not starts:
             ctx.log.warning("train_wm: %s episodes are shorter than %d steps, no horizon metrics", split, max(HORIZONS))

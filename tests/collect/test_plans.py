@@ -101,3 +101,40 @@ def test_near_miss_ends_beside_the_goal_after_the_same_approach(task):
         else:  # released 8-13 cm sideways, at the same height
             assert 0.08 - 1e-9 <= np.linalg.norm(end_miss[:2] - end_opt[:2]) <= 0.13 + 1e-9
             assert end_miss[2] == pytest.approx(end_opt[2])
+
+
+@pytest.mark.parametrize("task", sorted(LAYOUTS))
+def test_grasp_miss_lands_beside_the_object_and_keeps_the_rest(task):
+    from stages.collect.plans import _quat_axis
+
+    opt = optimal_plan(LAYOUTS[task])
+    roles = [s.role for s in _moves(opt)]
+    moved = ("pre", "contact", "slide", "retreat") if "slide" in roles else ("pre", "grasp", "lift")
+    sides = set()
+    for seed in range(10):
+        miss = suboptimal_plan(opt, "grasp_miss", np.random.default_rng(seed))
+        assert len(miss) == len(opt) and all(type(a) is type(b) for a, b in zip(miss, opt))
+        shifts = [np.array(b.pose[:3]) - np.array(a.pose[:3]) for a, b in zip(_moves(opt), _moves(miss))]
+        for a, b, d in zip(_moves(opt), _moves(miss), shifts):
+            assert b.pose[3:] == a.pose[3:] and b.role == a.role
+            if a.role not in moved:
+                assert np.allclose(d, 0.0), a.role  # carry, place, retreat (pick) untouched
+        d = shifts[roles.index(moved[1])]  # the grasp / contact waypoint
+        assert d[2] == 0.0 and 0.05 - 1e-9 <= np.linalg.norm(d) <= 0.065 + 1e-9
+        assert all(np.allclose(shifts[roles.index(r)], d) for r in moved)  # one rigid sideways shift
+        if "slide" in roles:
+            assert d[0] == 0.0  # across the slide, not along it
+        else:  # across the fingers' closing direction (the grasp frame's y axis)
+            closing = _quat_axis(_moves(opt)[roles.index("grasp")].pose[3:], 1)
+            assert abs(np.dot(d / np.linalg.norm(d), closing)) < 1e-6
+        sides.add(np.sign(d[np.argmax(np.abs(d))]))
+    assert sides == {-1.0, 1.0}  # both sides of the object
+
+
+def test_quat_axis_is_the_rotation_matrix_column():
+    from stages.collect.plans import _quat_axis
+
+    half = np.sqrt(0.5)
+    q = (half, 0.0, 0.0, half)  # +90 degrees about z: x -> y, y -> -x
+    assert np.allclose(_quat_axis(q, 0), [0, 1, 0]) and np.allclose(_quat_axis(q, 1), [-1, 0, 0])
+    assert np.allclose(_quat_axis(DOWN, 2), [0, 0, -1])  # 180 degrees about x: z -> -z

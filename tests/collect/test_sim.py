@@ -91,6 +91,7 @@ def test_stage_run_writes_a_readable_artifact(sims, tmp_path):
     from stages.collect import Config, run
     from stages.collect.contact_sheet import render
     from stages.collect.dataset import Dataset
+    from stages.collect.plans import FAILURE_KINDS
 
     cfg = Config(tasks=("push",), ind_scenes=1, ood_scenes=1, optimal_per_scene=1, ood_optimal_per_scene=1,
                  suboptimal_ratio=1.0, replay_fraction=1.0, episodes_per_shard=3)
@@ -98,14 +99,18 @@ def test_stage_run_writes_a_readable_artifact(sims, tmp_path):
     out.mkdir()
     run(StageContext(stage="collect", config=cfg, inputs={}, out=out, seed=0))
     metrics = json.loads((out / "metrics.json").read_text())
-    # per split: one optimal, one suboptimal, one near-miss (the done head's negative, near_miss_per_scene=1)
-    assert metrics["episodes"] == metrics["episodes_planned"] == 6
-    assert metrics["episodes_by_split"] == {"ind": 3, "ood": 3}
-    assert metrics["episodes_by_kind"]["near_miss"] == 2
+    # per split: one optimal, one suboptimal, one near-miss and one grasp-miss (the world model's negatives)
+    assert metrics["episodes"] == metrics["episodes_planned"] == 8
+    assert metrics["episodes_by_split"] == {"ind": 4, "ood": 4}
+    assert metrics["episodes_by_kind"]["near_miss"] == metrics["episodes_by_kind"]["grasp_miss"] == 2
     assert metrics["replay_success_rate"] == 1.0 and metrics["replayed"] == 2
     ds = Dataset(out)
     assert {m.split for m in ds.episodes} == {"ind", "ood"}
-    assert all(m.success != (m.kind == "near_miss") for m in ds.episodes)  # demonstrations succeed, near-misses fail
+    assert all(m.success != (m.kind in FAILURE_KINDS) for m in ds.episodes)  # demonstrations succeed, failures fail
+    for m in ds.episodes:  # a grasp-miss never moves the object: the fingers close / slide beside it
+        if m.kind == "grasp_miss":
+            obj = ds.load_states(m.episode_id)["obj_pose"]
+            assert np.abs(obj[-1, :3] - obj[0, :3]).max() < 0.005, m.episode_id
     scenes = json.loads((out / "scenes.json").read_text())["scenes"]
     by_id = {s["scene_id"]: s for s in scenes}
     assert all(by_id[m.scene_id]["split"] == m.split for m in ds.episodes)

@@ -334,13 +334,28 @@ def test_the_world_model_probe_trains_and_fine_tunes_on_an_exported_store(store,
         assert imag["episodes"] > 0, (split, imag)
         assert 0 <= imag["both"] <= min(imag["imagined_done"], imag["real_success"]) <= imag["episodes"], imag
 
-    # without a train_wm artifact (a tokenize artifact of another grid): train_wm's defaults, instructions
-    # encoded afresh; with --tokenizer: decoded PSNR per horizon and a frame strip
+    # encode: the tokenize artifact's tokenizer applied to a collect afresh, as the stage encodes and splits
+    # (here the same collect, so the very same tokens and held-out episodes)
+    enc = tmp_path / "enc"
+    p = run("encode", ups["collect"], ups["tokenize"], "--out", enc)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert np.array_equal(np.load(enc / "tokens.npy"), np.load(ups["tokenize"] / "tokens.npy"))
+    for name in ("index.json", "split.json"):
+        assert json.loads((enc / name).read_text()) == json.loads((ups["tokenize"] / name).read_text()), name
+
+    # without a train_wm artifact (a tokenize artifact of another grid, or an encoded folder): train_wm's
+    # defaults, instructions encoded afresh; with --tokenizer: decoded PSNR per horizon and a frame strip;
+    # --exclude-kinds leaves the grasp-misses out of the second model's training clips only
     bare, out2 = tmp_path / "bare.pt", tmp_path / "out2"
-    p = run("export", ups["collect"], ups["tokenize"], "--out", bare)
+    p = run("export", ups["collect"], enc, "--out", bare)
     assert p.returncode == 0, p.stderr[-3000:]
-    p = run("train", bare, '{"action_steps": 2}', "--tokenizer", ups["tokenize"], "--save-dir", out2)
+    p = run("train", bare, '{"action_steps": 2}', "--tokenizer", enc, "--save-dir", out2)
     assert p.returncode == 0, p.stderr[-3000:]
+    p = run("train", bare, '{"action_steps": 1}', "--exclude-kinds", "grasp_miss", "--save-dir", tmp_path / "out3")
+    assert p.returncode == 0, p.stderr[-3000:]
+    kept = json.loads((tmp_path / "out3" / "results.json").read_text())["m0"]
+    assert kept["exclude_kinds"] == ["grasp_miss"]
+    assert 0 < kept["train_episodes"] < json.loads((out2 / "results.json").read_text())["m0"]["train_episodes"]
     ev = json.loads((out2 / "results.json").read_text())["m0"]["eval"]
     for split, m in ev.items():
         acc = m["open_loop_token_acc"]
