@@ -74,15 +74,21 @@ def test_all_eight_stages_produce_their_artifacts_and_the_report(store):
     assert "tensorboard --logdir" in shown
 
 
-def test_near_misses_are_collected_as_negatives_and_never_demonstrations(store):
+def test_failures_are_collected_as_negatives_and_never_demonstrations(store):
+    """Near-misses and grasp-misses: collected, never successful, never SFT demonstrations, and train_wm
+    reports its done head's false alarms on each kind."""
+    from stages.collect.plans import FAILURE_KINDS
+
     episodes = [json.loads(x) for x in (artifact(store, "collect") / "episodes.jsonl").read_text().splitlines()]
-    misses = {e["episode_id"] for e in episodes if e["kind"] == "near_miss"}
-    assert misses and not any(e["success"] for e in episodes if e["kind"] == "near_miss")
+    misses = {e["episode_id"] for e in episodes if e["kind"] in FAILURE_KINDS}
+    assert {e["kind"] for e in episodes if e["episode_id"] in misses} == set(FAILURE_KINDS)
+    assert not any(e["success"] for e in episodes if e["episode_id"] in misses)
     split = json.loads((artifact(store, "sft") / "split.json").read_text())
     demos = {i for ids in split.values() for i in ids}
     assert demos and not demos & misses
     wm = json.loads((artifact(store, "train_wm") / "metrics.json").read_text())
-    assert 0.0 <= wm["action_wm/ood/done/near_miss/false_alarm_rate"] <= 1.0
+    for kind in FAILURE_KINDS:
+        assert 0.0 <= wm[f"action_wm/ood/done/{kind}/false_alarm_rate"] <= 1.0, kind
 
 
 def test_success_out_earns_lingering_for_every_reward_module(store):
