@@ -19,14 +19,16 @@ Two failure kinds (beyond the paper), the world model's negatives, never a demon
   - ``grasp_miss``: the optimal plan that misses at the start: the gripper descends and closes 5-6.5 cm
     beside the object (across the fingers' closing direction, so neither finger touches it) and then
     carries nothing to the target (pick & place, move to aim), or the closed fingers slide past the
-    object 5-6.5 cm to its side (push, pull). Without it every recorded contact moves the object, and a
-    world model learns that the object follows a closing gripper wherever it closes.
+    object 5-6.5 cm to its side (push, pull). Without it every recorded contact moves the object, and
+    the world models trained so far imagined the object following a gripper that closed beside it.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from stages.common.proprio import quat_to_matrix
 
 SUBOPTIMAL_KINDS = ("waypoint_noise", "interpolate", "grasp_disturb")
 FAILURE_KINDS = ("near_miss", "grasp_miss")
@@ -195,16 +197,6 @@ def near_miss_plan(opt: list, rng: np.random.Generator, *, offset: tuple = (0.08
     return out
 
 
-def _quat_axis(q, i: int) -> np.ndarray:
-    """Column ``i`` of the rotation matrix of quaternion ``q`` (wxyz): the frame's i-th axis in the world."""
-    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])[:, i]
-
-
 def grasp_miss_plan(opt: list, rng: np.random.Generator, *, offset: tuple = (0.05, 0.065)) -> list:
     """``opt`` whose grasp / contact lands beside the object: the approach shifted sideways, the rest as planned.
 
@@ -212,7 +204,8 @@ def grasp_miss_plan(opt: list, rng: np.random.Generator, *, offset: tuple = (0.0
     axis (horizontal, across the closing direction, its y axis), so the fingers close in the air
     beside the object and carry nothing. Push, pull: pre, contact, slide and retreat move sideways
     (world y, across the slide), so the closed fingers pass beside the object. The 5 cm lower bound
-    clears the largest object (3 cm half extent) plus a finger pad's half width with 1 cm to spare.
+    is 2 cm more than the largest object's half extent (3 cm); that the object stays where it was is
+    checked in the simulator (tests/collect/test_sim.py).
     """
     moves = {s.role: s for s in opt if isinstance(s, Move)}
     sign = 1.0 if rng.random() < 0.5 else -1.0
@@ -220,7 +213,7 @@ def grasp_miss_plan(opt: list, rng: np.random.Generator, *, offset: tuple = (0.0
         side = np.array([0.0, 1.0, 0.0])
         moved = ("pre", "contact", "slide", "retreat")
     else:
-        side = _quat_axis(moves["grasp"].pose[3:], 0) * [1.0, 1.0, 0.0]
+        side = quat_to_matrix(moves["grasp"].pose[3:])[:, 0] * [1.0, 1.0, 0.0]  # (3,) the grasp frame's x axis
         side /= max(np.linalg.norm(side), 1e-9)
         moved = ("pre", "grasp", "lift")
     shift = sign * rng.uniform(*offset) * side  # (3,) metres, horizontal

@@ -105,7 +105,7 @@ def test_near_miss_ends_beside_the_goal_after_the_same_approach(task):
 
 @pytest.mark.parametrize("task", sorted(LAYOUTS))
 def test_grasp_miss_lands_beside_the_object_and_keeps_the_rest(task):
-    from stages.collect.plans import _quat_axis
+    from stages.common.proprio import quat_to_matrix
 
     opt = optimal_plan(LAYOUTS[task])
     roles = [s.role for s in _moves(opt)]
@@ -125,16 +125,18 @@ def test_grasp_miss_lands_beside_the_object_and_keeps_the_rest(task):
         if "slide" in roles:
             assert d[0] == 0.0  # across the slide, not along it
         else:  # across the fingers' closing direction (the grasp frame's y axis)
-            closing = _quat_axis(_moves(opt)[roles.index("grasp")].pose[3:], 1)
+            closing = quat_to_matrix(_moves(opt)[roles.index("grasp")].pose[3:])[:, 1]
             assert abs(np.dot(d / np.linalg.norm(d), closing)) < 1e-6
         sides.add(np.sign(d[np.argmax(np.abs(d))]))
     assert sides == {-1.0, 1.0}  # both sides of the object
 
 
-def test_quat_axis_is_the_rotation_matrix_column():
-    from stages.collect.plans import _quat_axis
+
+def test_the_grasp_frame_axes_the_plan_reads():
+    """grasp_miss_plan reads the grasp frame's x axis as quat_to_matrix's column 0 (wxyz quaternions)."""
+    from stages.common.proprio import quat_to_matrix
 
     half = np.sqrt(0.5)
     q = (half, 0.0, 0.0, half)  # +90 degrees about z: x -> y, y -> -x
-    assert np.allclose(_quat_axis(q, 0), [0, 1, 0]) and np.allclose(_quat_axis(q, 1), [-1, 0, 0])
-    assert np.allclose(_quat_axis(DOWN, 2), [0, 0, -1])  # 180 degrees about x: z -> -z
+    assert np.allclose(quat_to_matrix(q)[:, 0], [0, 1, 0]) and np.allclose(quat_to_matrix(q)[:, 1], [-1, 0, 0])
+    assert np.allclose(quat_to_matrix(DOWN)[:, 2], [0, 0, -1])  # 180 degrees about x: z -> -z
