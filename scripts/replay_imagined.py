@@ -9,7 +9,8 @@ the SFT policy or a PPO snapshot, with other environment counts or thresholds:
 
 Prints imagined done (done head >= theta at any step), simulator success of the replayed actions,
 precision with its Wilson 95% interval, the same at each stricter threshold of ``--thetas`` (from the
-same rollouts), and one line per environment.
+same rollouts), the largest imagined-vs-replayed TCP gap up to each imagined success (confirmed by
+the replay or not), and one line per environment.
 """
 from __future__ import annotations
 
@@ -45,7 +46,7 @@ def main() -> None:
     torch.set_num_threads(1)
 
     from stages.rl.imagined import (TCP_ERROR_STEPS, imagine_and_replay, precision_at, precision_head_only, tcp_error_at,
-                                    token_accuracy_at)
+                                    tcp_gap_by_outcome, tcp_gap_to_done, token_accuracy_at)
     from stages.sft.policy import POLICY_FILE
 
     path = {"ppo": args.rl / "policy.zip", "sft": args.sft / POLICY_FILE}.get(args.policy, args.rl / args.policy)
@@ -81,9 +82,15 @@ def main() -> None:
     accs = token_accuracy_at(rows, TCP_ERROR_STEPS)
     print("  tokens of the imagined frame equal to the replayed frame's (the first frame's in brackets): "
           + ", ".join(f"{a[0]:.3f} ({a[1]:.3f}) after {k}" if a is not None else f"- after {k}" for k, a in accs.items()))
+    gaps = tcp_gap_by_outcome(rows)
+    if gaps["true"] or gaps["false"]:
+        print("  largest imagined-vs-replayed TCP gap up to the imagined done (cm), imagined successes the replay "
+              + "; ".join(f"{k} ({len(v)}): " + (", ".join(f"{100 * g:.1f}" for g in v) or "-")
+                          for k, v in (("confirmed", gaps["true"]), ("did not confirm", gaps["false"]))))
     for r in rows:
+        gap = tcp_gap_to_done(r)
         print(f"    {r.env_id:55s} done_at {r.done_at:3d}  peak p {max(r.done_probs):.3f}  replay success {r.success}"
-              f" (first at {r.first_success})")
+              f" (first at {r.first_success})" + (f"  TCP gap to done {100 * gap:.1f} cm" if gap is not None else ""))
 
 
 def load_guard(path: Path, theta: float):

@@ -60,9 +60,11 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
 
     sim: a ``SimTaskEnv`` whose ``action_repeat`` is the world model's frame skip.
     record: if given, filled with ``tokens`` (N, T+1, h, w), the imagined frames' tokens, ``hidden``
-    (N, T, D), their pooled head features (what the done head and the guard read), and ``frames``,
-    per environment the replay's third-view frames (H, W, 3) uint8 at steps 0, 1, ... (until it
-    ended), for looking at the two side by side.
+    (N, T, D), their pooled head features (what the done head and the guard read), ``proprio``
+    (N, T, 10), the imagined proprioception after each step (the start's throughout without a proprio
+    head), ``frames``, per environment the replay's third-view frames (H, W, 3) uint8 at steps 0, 1,
+    ... (until it ended), for looking at the two side by side, and ``replay_proprio``, per
+    environment the replay's proprioception (10,) after steps 1, 2, ... (until it ended).
     guard: a ``stages.rl.guard.Guard`` the environment applies; an imagined success then needs its
     confirmation too (see the module docstring).
     """
@@ -104,24 +106,28 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
         if record is not None:
             record.setdefault("tokens", [tokens]).append(out.tokens.cpu().long())
             record.setdefault("hidden", []).append(out.hidden.float().cpu())
+            record.setdefault("proprio", []).append(proprio.numpy().copy())
         obs = obs_fn.from_tokens(out.tokens, proprio.numpy(), instructions)
         codes[:, t] = obs["codes"] > 0
 
     if record is not None:
         record["tokens"] = torch.stack(record["tokens"], 1)  # (N, T+1, h, w)
         record["hidden"] = torch.stack(record["hidden"], 1)  # (N, T, D) the imagined frames' pooled head features
-        record["frames"] = []
+        record["proprio"] = np.stack(record["proprio"], 1)  # (N, T, 10) imagined proprioception after each step
+        record["frames"], record["replay_proprio"] = [], []
         sim.keep_frames = True
     out_rows = []
     for i, (spec, seed) in enumerate(zip(specs, seeds)):
         sim.reset(seed=seed, options={"spec": spec})
         if record is not None:
             record["frames"].append([sim.frames[0][0]])
+            record["replay_proprio"].append([])
         first_success, err, acc, copy = -1, [], [], []
         for t in range(steps):
             real, _, _, trunc, info = sim.step(actions[i, t])
             if record is not None:
                 record["frames"][-1].append(sim.frames[-1][0])
+                record["replay_proprio"][-1].append(np.asarray(real["proprio"], np.float32))
             if has_head:
                 err.append(float(np.linalg.norm(np.asarray(real["proprio"])[:3] - tcp[i, t])) / POSITION_SCALE)  # dm -> m
             seen = np.asarray(real["codes"]) > 0  # (C, h, w)
@@ -184,6 +190,28 @@ def tcp_error_at(rows: list[Replay], steps: tuple[int, ...]) -> dict[int, float 
         errs = [r.tcp_error[k - 1] for r in rows if len(r.tcp_error) >= k]
         out[k] = float(np.mean(errs)) if errs else None
     return out
+
+
+def tcp_gap_to_done(row: Replay) -> float | None:
+    """The largest imagined-vs-replayed TCP distance (metres) up to the row's imagined done, or up to
+    the replay's end where that came first (a replay stops at its first success); None for a row
+    with no imagined done or no TCP record. How far the imagined arm had drifted from the real one
+    when the world model called the episode a success."""
+    if row.done_at < 0 or not row.tcp_error:
+        return None
+    return float(max(row.tcp_error[: row.done_at]))
+
+
+def tcp_gap_by_outcome(rows: list[Replay]) -> dict[str, list[float]]:
+    """``tcp_gap_to_done`` of the imagined successes, split by whether the replay confirmed them:
+    {"true": [...], "false": [...]} in metres, each sorted. Whether a drifted imagined arm marks
+    the false ones is what a kinematic check on imagined episodes would rest on."""
+    out = {"true": [], "false": []}
+    for r in rows:
+        gap = tcp_gap_to_done(r)
+        if gap is not None:
+            out["true" if r.success else "false"].append(gap)
+    return {k: sorted(v) for k, v in out.items()}
 
 
 def token_accuracy_at(rows: list[Replay], steps: tuple[int, ...]) -> dict[int, tuple[float, float] | None]:

@@ -340,6 +340,14 @@ def test_the_world_model_probe_trains_and_fine_tunes_on_an_exported_store(store,
         assert imag["episodes"] > 0, (split, imag)
         assert 0 <= imag["both"] <= min(imag["imagined_done"], imag["real_success"]) <= imag["episodes"], imag
 
+    # scripts/arm_consistency_probe.py on the same export: an arm locator fitted on its real frames, the policy
+    # check with the imagined and replayed proprioception recorded, a gap per imagined success
+    p = subprocess.run([sys.executable, "scripts/arm_consistency_probe.py", str(data), *(str(ups[s]) for s in
+                        ("collect", "tokenize", "train_wm", "sft")), "--envs", "2", "--steps", "4", "--locator-steps", "20"],
+                       cwd=REPO, capture_output=True, text=True, timeout=900, env=env)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert "arm locator on real" in p.stdout and "veto above 2.0 cm" in p.stdout, p.stdout[-2000:]
+
     # encode: the tokenize artifact's tokenizer applied to a collect afresh, as the stage encodes and splits
     # (here the same collect, so the very same tokens and held-out episodes)
     enc = tmp_path / "enc"

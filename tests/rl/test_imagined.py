@@ -38,6 +38,20 @@ def test_tcp_error_averages_only_over_replays_that_lasted():
     assert errs[4] is None  # no replay lasted 4 steps
 
 
+def test_tcp_gap_is_read_up_to_the_imagined_done_and_split_by_outcome():
+    from stages.rl.imagined import tcp_gap_by_outcome, tcp_gap_to_done
+
+    drifted = replay_row("pick/a", np.array([0.1, 0.2, 0.9, 0.9]), -1, 0.5, (0.01, 0.04, 0.02, 0.30))
+    assert tcp_gap_to_done(drifted) == pytest.approx(0.04)  # done at step 3: the 0.30 after it does not count
+    real = replay_row("push/b", np.array([0.1, 0.9, 0.9, 0.9]), 2, 0.5, (0.005, 0.01))  # replay stopped at success
+    assert tcp_gap_to_done(real) == pytest.approx(0.01)
+    never = replay_row("pull/c", np.zeros(4), -1, 0.5, (0.5, 0.5, 0.5, 0.5))
+    assert tcp_gap_to_done(never) is None  # no imagined done, no gap
+    assert tcp_gap_to_done(replay_row("pull/d", np.ones(4), -1, 0.5)) is None  # no TCP record (no proprio head)
+    gaps = tcp_gap_by_outcome([drifted, real, never])
+    assert gaps["true"] == pytest.approx([0.01]) and gaps["false"] == pytest.approx([0.04])
+
+
 def test_a_token_matches_only_if_all_its_code_bits_do():
     from stages.rl.imagined import token_match
 
