@@ -41,9 +41,10 @@ class ArmLocator(nn.Module):
         super().__init__()
         self.net = nn.Sequential(nn.Flatten(), nn.Linear(bits * grid[0] * grid[1], hidden), nn.GELU(),
                                  nn.Linear(hidden, hidden), nn.GELU(), nn.Linear(hidden, 3))
+        self.register_buffer("mean", torch.zeros(3))  # (3,) mean TCP position of the fitted frames, m
 
     def forward(self, codes: torch.Tensor) -> torch.Tensor:
-        return self.net(codes)
+        return self.net(codes) + self.mean
 
 
 def frames_and_tcp(episodes, codes_fn) -> tuple[torch.Tensor, torch.Tensor]:
@@ -58,19 +59,19 @@ def frames_and_tcp(episodes, codes_fn) -> tuple[torch.Tensor, torch.Tensor]:
 def fit_locator(locator: ArmLocator, codes: torch.Tensor, tcp: torch.Tensor, steps: int, seed: int) -> dict:
     from stages.train_wm.head_fit import fit_head
 
-    mean = tcp.mean(0)
+    locator.mean.copy_(tcp.mean(0))
 
     def batch_loss(gen: torch.Generator) -> torch.Tensor:
         idx = torch.randint(0, len(codes), (256,), generator=gen)
-        return ((locator(codes[idx]) + mean - tcp[idx]) ** 2).sum(1).mean() * 1e4  # cm^2
-    locator.register_buffer("mean", mean)
+        return ((locator(codes[idx]) - tcp[idx]) ** 2).sum(1).mean() * 1e4  # squared error in cm^2
+
     return fit_head(locator, batch_loss, steps=steps, lr=1e-3, seed=seed)
 
 
 @torch.no_grad()
 def locate(locator: ArmLocator, codes: torch.Tensor) -> np.ndarray:
     """(M, 3) located TCP positions in metres."""
-    return (locator(codes.float()) + locator.mean).numpy()
+    return locator(codes.float()).numpy()
 
 
 def main() -> None:
