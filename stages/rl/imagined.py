@@ -195,8 +195,10 @@ def tcp_error_at(rows: list[Replay], steps: tuple[int, ...]) -> dict[int, float 
 def tcp_gap_to_done(row: Replay) -> float | None:
     """The largest imagined-vs-replayed TCP distance (metres) up to the row's imagined done, or up to
     the replay's end where that came first (a replay stops at its first success); None for a row
-    with no imagined done or no TCP record. How far the imagined arm had drifted from the real one
-    when the world model called the episode a success."""
+    with no imagined done or no TCP record. How far the imagined proprioception's TCP (the
+    proprioception head's, driven mostly by the actions) had drifted from the real arm when the world
+    model called the episode a success; the arm drawn in the imagined frames is another matter
+    (scripts/arm_consistency_probe.py locates it)."""
     if row.done_at < 0 or not row.tcp_error:
         return None
     return float(max(row.tcp_error[: row.done_at]))
