@@ -308,6 +308,7 @@ def test_the_world_model_probe_trains_and_fine_tunes_on_an_exported_store(store,
 
     import numpy as np
     import torch
+    import yaml
 
     from stages.train_wm.rollout import load_net
 
@@ -358,14 +359,18 @@ def test_the_world_model_probe_trains_and_fine_tunes_on_an_exported_store(store,
         assert json.loads((enc / name).read_text()) == json.loads((ups["tokenize"] / name).read_text()), name
 
     # without a train_wm artifact (a tokenize artifact of another grid, or an encoded folder): train_wm's
-    # defaults, instructions encoded afresh; with --tokenizer: decoded PSNR per horizon and a frame strip;
-    # --exclude-kinds leaves the grasp-misses out of the second model's training clips only
+    # Config and the overrides (here the toy profile's size: the defaults are the small profile's, whose
+    # evaluation alone takes minutes on 2 cores), instructions encoded afresh; with --tokenizer: decoded PSNR
+    # per horizon and a frame strip; --exclude-kinds leaves the grasp-misses out of the second model's
+    # training clips only
     bare, out2 = tmp_path / "bare.pt", tmp_path / "out2"
+    toy = yaml.safe_load((REPO / "pipeline.yaml").read_text())["profiles"]["toy"]["train_wm"]
     p = run("export", ups["collect"], enc, "--out", bare)
     assert p.returncode == 0, p.stderr[-3000:]
-    p = run("train", bare, '{"action_steps": 2}', "--tokenizer", enc, "--save-dir", out2)
+    p = run("train", bare, json.dumps({**toy, "action_steps": 2}), "--tokenizer", enc, "--save-dir", out2)
     assert p.returncode == 0, p.stderr[-3000:]
-    p = run("train", bare, '{"action_steps": 1}', "--exclude-kinds", "grasp_miss", "--save-dir", tmp_path / "out3")
+    p = run("train", bare, json.dumps({**toy, "action_steps": 1}), "--exclude-kinds", "grasp_miss",
+            "--save-dir", tmp_path / "out3")
     assert p.returncode == 0, p.stderr[-3000:]
     kept = json.loads((tmp_path / "out3" / "results.json").read_text())["m0"]
     assert kept["exclude_kinds"] == ["grasp_miss"]
