@@ -308,8 +308,8 @@ def test_the_world_model_probe_trains_and_fine_tunes_on_an_exported_store(store,
 
     import numpy as np
     import torch
-    import yaml
 
+    from pipeline.spec import load_spec
     from stages.train_wm.rollout import load_net
 
     ups = {s: shown(store, s) for s in ("collect", "tokenize", "train_wm", "sft")}
@@ -364,7 +364,7 @@ def test_the_world_model_probe_trains_and_fine_tunes_on_an_exported_store(store,
     # per horizon and a frame strip; --exclude-kinds leaves the grasp-misses out of the second model's
     # training clips only
     bare, out2 = tmp_path / "bare.pt", tmp_path / "out2"
-    toy = yaml.safe_load((REPO / "pipeline.yaml").read_text())["profiles"]["toy"]["train_wm"]
+    toy = load_spec(REPO / "pipeline.yaml").profiles["toy"]["train_wm"]
     p = run("export", ups["collect"], enc, "--out", bare)
     assert p.returncode == 0, p.stderr[-3000:]
     p = run("train", bare, json.dumps({**toy, "action_steps": 2}), "--tokenizer", enc, "--save-dir", out2)
