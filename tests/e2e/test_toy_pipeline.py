@@ -221,7 +221,7 @@ def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horiz
     assert np.array_equal(own[j].tokens, inp.tokens(eid)[j])
     assert np.allclose(own[j].proprio, proprio_from_state(states["ee_pose"][idx[j]], states["qpos"][idx[j]])[0])
 
-    cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.branch_horizon=3")
+    cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.branch_horizon=3", "--set", "rl.precision_envs=0")
     rl = artifact(store, "rl")
     m = json.loads((rl / "metrics.json").read_text())
     assert m["ppo/start_states"] == len(every)
