@@ -83,9 +83,9 @@ def imagined_successes(policy, wm, obs_fn, starts: list, steps: int, theta: floa
 
 
 def calibrate(policy, wm, obs_fn, starts_by_task: dict[str, list], play: list[dict], steps: int, theta: float,
-              per_task: int, seed: int) -> list[TaskCalibration]:
+              per_task: int, seed: int, progress=None) -> list[TaskCalibration]:
     """One ``TaskCalibration`` per task of ``starts_by_task`` ({task: [Start, ...]}), from ``per_task``
-    starts of each (a seeded choice) and the play's real rates."""
+    starts of each (a seeded choice) and the play's real rates; ``progress`` (a bar) advances per task."""
     rates = real_rates(play, list(starts_by_task))
     rng = np.random.default_rng(seed)
     out = []
@@ -96,4 +96,6 @@ def calibrate(policy, wm, obs_fn, starts_by_task: dict[str, list], play: list[di
         pick = [starts[i] for i in sorted(rng.choice(len(starts), size=min(per_task, len(starts)), replace=False))]
         done = imagined_successes(policy, wm, obs_fn, pick, steps, theta)
         out.append(TaskCalibration(task, int(done.sum()), len(pick), *rates[task]))
+        if progress is not None:
+            progress.update(1)
     return out

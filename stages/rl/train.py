@@ -144,8 +144,7 @@ def _calibration_gate(ctx, cfg, inp, envs: list, metrics: dict) -> list:
     by_task = {t: inp.starts([e for e in envs if e.task == t]) for t in inp.tasks}
     with ctx.progress(len(by_task), "rl: calibration gate (SFT policy imagined per task)", unit="task") as bar:
         table = calibrate(inp.sft_policy, inp.wm, inp.obs_fn, by_task, play, cfg.max_episode_steps, cfg.theta_done,
-                          cfg.calibration_starts, cfg.seed)
-        bar.update(len(by_task))
+                          cfg.calibration_starts, cfg.seed, progress=bar)
     rows = [c.row(cfg.calibration_ratio) for c in table]
     (ctx.out / "calibration.json").write_text(json.dumps({"ratio": cfg.calibration_ratio, "tasks": rows}, indent=1) + "\n")
     for r in rows:
