@@ -135,6 +135,9 @@ class Config(BaseModel):
                                         "the latent, the proprioception and instruction layers) at SFT's weights; only "
                                         "the actor's MLP, action head and noise adapt (inside the world model the "
                                         "latents are imagined, unlike the real ones evaluation feeds it)")
+    noise_scale: float = Field(1.0, gt=0, description="PPO's initial action std = this x the SFT policy's (sft.noise_scale "
+                               "x SFT's held-out residual std); below 1 the sampled actions PPO trains on come closer "
+                               "to the deterministic ones evaluation runs")
     kl_coef: float = Field(0.0, ge=0, description="after each update, a pass minimising kl_coef * KL(SFT || policy) "
                            "over the rollout (0 = off)")
     demo_bc_batches: int = Field(0, ge=0, description="after each PPO update, minibatches of behaviour cloning on the "
