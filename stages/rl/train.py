@@ -108,7 +108,7 @@ def train(ctx, cfg, inp) -> dict:
     log.write()
     env.close()
     after = flat_params(model.policy)
-    plot_training(log.episodes, ctx.out / "training.png", f"PPO, reward={cfg.reward}")
+    plot_training(log.episodes, ctx.out / "training.png", f"PPO, reward={cfg.reward}", log.unfinished_from())
     metrics.update({f"ppo/{k}": v for k, v in log.summary().items()})
     metrics.update({
         "ppo/timesteps": int(model.num_timesteps), "ppo/seconds": seconds,
