@@ -25,13 +25,18 @@ Outputs:
     reward_heads.pt     fitted embedding / proxy heads (when fitted)
     guard.pt            the guard's done-classifier ensemble (``guard``; with ``guard_replay_rounds``
                         the last refit's, ``stages.rl.guard_refit``)
-    episodes.json       every training episode: return, length, terminated by done head or truncated
-    training.png        episode return over env steps
+    episodes.json       every training episode: return, length, terminated by done head or truncated,
+                        the env step it started and ended at
+    success_by_start.json  training success in 10 spans of the start step, over the episodes no
+                        unfinished one started before (by end order the short, successful ones come first)
+    training.png        episode return over env steps; training success by start step
     tensorboard/        episode return / length and PPO update statistics, live (``stages.common.curves``)
     reward_diagnostics.png  each module's reward along held-out successful episodes, IND and OOD
     rl.json             the facts this stage fixes, read by evaluate and the sweep report through
                         ``read_rl_facts``: the reward module, whether success pays the steps left,
                         what ``rule`` pays (``rule_terms``) and the method label key (``method_of``)
+    calibration.json    with ``calibration_ratio``: per task, the SFT policy's imagined and real success
+                        rates and whether PPO trained on it (``stages.rl.calibration``)
     imagined.json       per split, the final policy's imagined episodes replayed in ManiSkill: where
                         the done head fired and whether the simulator agreed (``stages.rl.imagined``)
     metrics.json        PPO summary, env steps/s, policy parameter change from SFT, diagnostics
@@ -96,6 +101,11 @@ class Config(BaseModel):
                                 "episodes before its success (a state the data reached) and are truncated after this "
                                 "many steps, PPO bootstrapping the value there (short branched rollouts: the "
                                 "imagination stays near real states; world-model rewards only)")
+    calibration_ratio: float = Field(0.0, ge=0, lt=1, description="0 = off; r > 0: PPO trains in the world model "
+                                     "only on the tasks where the SFT policy's imagined success rate lies within "
+                                     "[r, 1/r] x its real rate in wm_play's play (stages/rl/calibration.py; world-model "
+                                     "rewards only)")
+    calibration_starts: int = Field(32, ge=1, description="IND training starts per task the calibration gate imagines from")
     num_envs: int = Field(16, ge=1, description="world-model environments stepped as one batch")
     wm_dtype: Literal["fp32", "bf16", "auto"] = Field(
         "auto", description="the world-model env's step, frame decoding and LPIPS reward convolutions: auto = bf16 on CUDA and on a CPU that runs "
@@ -128,6 +138,9 @@ class Config(BaseModel):
                                         "the latent, the proprioception and instruction layers) at SFT's weights; only "
                                         "the actor's MLP, action head and noise adapt (inside the world model the "
                                         "latents are imagined, unlike the real ones evaluation feeds it)")
+    noise_scale: float = Field(1.0, gt=0, description="PPO's initial action std = this x the SFT policy's (sft.noise_scale "
+                               "x SFT's held-out residual std); below 1 the sampled actions PPO trains on come closer "
+                               "to the deterministic ones evaluation runs")
     kl_coef: float = Field(0.0, ge=0, description="after each update, a pass minimising kl_coef * KL(SFT || policy) "
                            "over the rollout (0 = off)")
     demo_bc_batches: int = Field(0, ge=0, description="after each PPO update, minibatches of behaviour cloning on the "
@@ -164,6 +177,13 @@ class Config(BaseModel):
         if self.branch_horizon and REGISTRY[self.reward].env != "wm":
             raise ValueError(f"branch_horizon={self.branch_horizon} starts world-model episodes mid-way, but reward "
                              f"{self.reward!r} trains in the simulator, which starts only from resets; set it to 0")
+        return self
+
+    @model_validator(mode="after")
+    def _calibration_needs_the_world_model(self) -> "Config":
+        if self.calibration_ratio and REGISTRY[self.reward].env != "wm":
+            raise ValueError(f"calibration_ratio={self.calibration_ratio} gates the tasks PPO trains on in the world "
+                             f"model, but reward {self.reward!r} trains in the simulator; set it to 0")
         return self
 
     @model_validator(mode="after")

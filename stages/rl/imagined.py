@@ -53,6 +53,40 @@ class Replay:
     copy_accuracy: tuple = ()  # the same for the first frame's tokens: what imagining a still scene would score
 
 
+@dataclass
+class ImaginedStep:
+    """One step of a policy acting closed loop inside the world model (all envs of the batch)."""
+
+    t: int  # 0-based step index
+    action: np.ndarray  # (N, 7) the actions as the world model saw them (clipped to its range)
+    out: object  # the rollout's step output: tokens (N, h, w), done_prob (N,), hidden (N, D)
+    proprio: np.ndarray  # (N, 10) the robot's imagined proprioception after the step (the start's without a head)
+    obs: dict  # the policy's observation of the imagined frame
+
+
+@torch.no_grad()
+def closed_loop(policy, wm, obs_fn, tokens: torch.Tensor, proprio0: np.ndarray, instructions: list[str], steps: int):
+    """Yield ``ImaginedStep`` for ``steps`` steps of ``policy`` (deterministic actions) acting on its own
+    imagined frames from ``tokens`` (N, h, w) and proprioception ``proprio0`` (N, 10): the loop the
+    imagined-success check and the calibration gate (``stages.rl.calibration``) share."""
+    from stages.sft.policy import act
+
+    tokens = tokens.long().cpu()
+    roll = wm.rollout(len(tokens))
+    roll.reset(tokens.to(wm.device))
+    has_head = getattr(wm, "proprio_head", None) is not None
+    proprio = torch.as_tensor(np.asarray(proprio0))  # (N, 10) on the CPU (the head's output is brought back)
+    obs = obs_fn.from_tokens(tokens, proprio.numpy(), instructions)
+    for t in range(steps):
+        a = torch.as_tensor(act(policy, obs, deterministic=True), device=wm.device)
+        a = torch.minimum(torch.maximum(a, wm.net.action_low), wm.net.action_high)  # what the WM sees (it clips)
+        out = roll.step(a)
+        if has_head:
+            proprio = wm.next_proprio(proprio, a, out.tokens).cpu()
+        obs = obs_fn.from_tokens(out.tokens, proprio.numpy(), instructions)
+        yield ImaginedStep(t, a.cpu().numpy(), out, proprio.numpy(), obs)
+
+
 @torch.no_grad()
 def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[int], steps: int,
                        theta: float, record: dict | None = None, guard=None) -> list[Replay]:
@@ -68,8 +102,6 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     guard: a ``stages.rl.guard.Guard`` the environment applies; an imagined success then needs its
     confirmation too (see the module docstring).
     """
-    from stages.sft.policy import act
-
     starts, instructions, proprio0 = [], [], []
     sim.keep_frames = True
     for spec, seed in zip(specs, seeds):
@@ -81,34 +113,25 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     sim.keep_frames = False
     n = len(specs)
     tokens = torch.stack(starts).long().cpu()  # (N, h, w)
-    roll = wm.rollout(n)
-    roll.reset(tokens.to(wm.device))
-    proprio = torch.as_tensor(np.stack(proprio0))  # (N, 10), on the CPU (the head's output is brought back)
-    obs = obs_fn.from_tokens(tokens, proprio.numpy(), instructions)
     actions = np.zeros((n, steps, 7), np.float32)
     probs = np.zeros((n, steps), np.float32)  # (N, T) done head after each step
     confirm = np.ones((n, steps), np.float32)  # (N, T) the guard ensemble's mean probability (1 without a guard)
     has_head = getattr(wm, "proprio_head", None) is not None  # without one the arm is not predicted: no tcp_error
     tcp = np.zeros((n, steps, 3), np.float32)  # (N, T, 3) imagined TCP position after each step
-    first_codes = obs["codes"] > 0  # (N, C, h, w) bool: the first frame's tokens as code bits
+    first_codes = obs_fn.from_tokens(tokens, np.stack(proprio0), instructions)["codes"] > 0  # (N, C, h, w) bool
     codes = np.zeros((n, steps) + first_codes.shape[1:], bool)  # (N, T, C, h, w) the imagined frames' bits
-    for t in range(steps):  # the whole horizon, so stricter thresholds can be read off later
-        a = torch.as_tensor(act(policy, obs, deterministic=True), device=wm.device)
-        a = torch.minimum(torch.maximum(a, wm.net.action_low), wm.net.action_high)  # what the WM sees (it clips)
-        actions[:, t] = a.cpu().numpy()  # replayed as seen, so both environments get the same actions
-        out = roll.step(a)
-        if has_head:
-            proprio = wm.next_proprio(proprio, a, out.tokens).cpu()
-        probs[:, t] = out.done_prob.cpu().numpy()
+    for s in closed_loop(policy, wm, obs_fn, tokens, np.stack(proprio0), instructions, steps):  # the whole horizon,
+        t = s.t  # so stricter thresholds can be read off later
+        actions[:, t] = s.action  # replayed as seen, so both environments get the same actions
+        probs[:, t] = s.out.done_prob.cpu().numpy()
         if guard is not None:
-            confirm[:, t] = guard.ensemble.probs(out.hidden).mean(0).cpu().numpy()  # (K, N) -> (N,)
-        tcp[:, t] = proprio.numpy()[:, :3]
+            confirm[:, t] = guard.ensemble.probs(s.out.hidden).mean(0).cpu().numpy()  # (K, N) -> (N,)
+        tcp[:, t] = s.proprio[:, :3]
         if record is not None:
-            record.setdefault("tokens", [tokens]).append(out.tokens.cpu().long())
-            record.setdefault("hidden", []).append(out.hidden.float().cpu())
-            record.setdefault("proprio", []).append(proprio.numpy().copy())
-        obs = obs_fn.from_tokens(out.tokens, proprio.numpy(), instructions)
-        codes[:, t] = obs["codes"] > 0
+            record.setdefault("tokens", [tokens]).append(s.out.tokens.cpu().long())
+            record.setdefault("hidden", []).append(s.out.hidden.float().cpu())
+            record.setdefault("proprio", []).append(s.proprio.copy())
+        codes[:, t] = s.obs["codes"] > 0
 
     if record is not None:
         record["tokens"] = torch.stack(record["tokens"], 1)  # (N, T+1, h, w)

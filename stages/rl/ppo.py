@@ -20,6 +20,7 @@ Reward normalisation (``normalize_reward``) is the environment's: SB3's ``VecNor
 from __future__ import annotations
 
 import copy
+import math
 
 import torch
 from stable_baselines3 import PPO
@@ -144,6 +145,9 @@ def make_ppo(env, cfg, sft_policy: TaskPolicy, sft_info: dict, device: str) -> S
                                              cfg.self_imitation_batches, batch_size, cfg.seed,
                                              cfg.self_imitation_weight)
     model.policy.load_state_dict(sft_policy.state_dict())
+    if cfg.noise_scale != 1.0:
+        with torch.no_grad():
+            model.policy.log_std.add_(math.log(cfg.noise_scale))  # (7,) per-dimension log std, SFT's scaled
     if cfg.freeze_actor_features:
         freeze_actor_features(model.policy)
     model.keep_reference()

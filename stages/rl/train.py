@@ -33,8 +33,11 @@ def train(ctx, cfg, inp) -> dict:
     chosen = REGISTRY[cfg.reward]
     metrics: dict = {}
     envs = inp.training_envs(tasks)
-    metrics["train_environments"] = len(envs)
     ctx.log.info("rl: reward %s, %d training environments of tasks %s", cfg.reward, len(envs), tasks)
+    ppo_envs = envs
+    if cfg.calibration_ratio:  # a world-model reward (the config's validator): PPO's tasks pass the gate
+        ppo_envs = _calibration_gate(ctx, cfg, inp, envs, metrics)
+    metrics["train_environments"] = len(ppo_envs)
 
     # ---- learned rewards (fitted to the rule reward of IND training episodes) ----------------------
     wanted = list(REGISTRY) if cfg.diagnostics == "all" else [cfg.reward]
@@ -70,7 +73,7 @@ def train(ctx, cfg, inp) -> dict:
     if chosen.env == "sim":
         raw_env = _sim_vec_env(ctx, cfg, inp, envs, payout_gamma)
     else:
-        starts = inp.starts(envs, any_frame=cfg.branch_horizon > 0)
+        starts = inp.starts(ppo_envs or envs, any_frame=cfg.branch_horizon > 0)  # no task kept: never stepped
         metrics["ppo/start_states"] = len(starts)
         raw_env = WorldModelVecEnv(inp.wm, inp.tok, inp.obs_fn, chosen.build(parts, cfg, cfg.num_envs),
                                    starts, num_envs=cfg.num_envs, max_steps=cfg.branch_horizon or cfg.max_episode_steps,
@@ -95,18 +98,21 @@ def train(ctx, cfg, inp) -> dict:
         callbacks = [log] if model.self_imitation is None else [log, SelfImitationRecorder(model.self_imitation)]
         if refit is not None:
             callbacks.append(refit)
-        model.learn(total_timesteps=cfg.total_timesteps, callback=callbacks)
+        if ppo_envs:
+            model.learn(total_timesteps=cfg.total_timesteps, callback=callbacks)
+        else:
+            ctx.log.warning("rl: the calibration gate kept no task: PPO does not run, the policy stays SFT's")
         model.curves = None
     seconds = time.perf_counter() - t0
     model.save(ctx.out / "policy.zip")
     log.write()
     env.close()
     after = flat_params(model.policy)
-    plot_training(log.episodes, ctx.out / "training.png", f"PPO, reward={cfg.reward}")
+    plot_training(log.episodes, ctx.out / "training.png", f"PPO, reward={cfg.reward}", log.unfinished_from())
     metrics.update({f"ppo/{k}": v for k, v in log.summary().items()})
     metrics.update({
         "ppo/timesteps": int(model.num_timesteps), "ppo/seconds": seconds,
-        "ppo/env_steps_per_second": model.num_timesteps / seconds,
+        "ppo/env_steps_per_second": model.num_timesteps / seconds if model.num_timesteps else 0.0,
         "ppo/param_change_relative": float((after - before).norm() / before.norm()),
         "ppo/updates": int(model.updates_done),
         "ppo/kl_to_sft_last": model.kl_history[-1] if model.kl_history else None,
@@ -126,6 +132,30 @@ def train(ctx, cfg, inp) -> dict:
         metrics.update(_imagined_precision(ctx, cfg, inp, model.policy, getattr(raw_env, "guard", None)))
     metrics["stage_seconds"] = time.perf_counter() - t_stage
     return metrics
+
+
+def _calibration_gate(ctx, cfg, inp, envs: list, metrics: dict) -> list:
+    """The training environments of the tasks that pass the calibration gate (stages.rl.calibration);
+    its table goes to ``calibration.json`` and ``metrics``."""
+    from stages.rl.calibration import calibrate
+    from stages.wm_play import PLAY_JSON
+
+    play = json.loads((ctx.input("wm_play") / PLAY_JSON).read_text())
+    by_task = {t: inp.starts([e for e in envs if e.task == t]) for t in inp.tasks}
+    with ctx.progress(len(by_task), "rl: calibration gate (SFT policy imagined per task)", unit="task") as bar:
+        table = calibrate(inp.sft_policy, inp.wm, inp.obs_fn, by_task, play, cfg.max_episode_steps, cfg.theta_done,
+                          cfg.calibration_starts, cfg.seed, progress=bar)
+    rows = [c.row(cfg.calibration_ratio) for c in table]
+    (ctx.out / "calibration.json").write_text(json.dumps({"ratio": cfg.calibration_ratio, "tasks": rows}, indent=1) + "\n")
+    for r in rows:
+        for k in ("imagined_rate", "real_rate", "kept"):
+            metrics[f"calibration/{r['task']}/{k}"] = r[k]
+    kept = [r["task"] for r in rows if r["kept"]]
+    metrics["calibration/kept_tasks"] = len(kept)
+    ctx.log.info("rl: calibration gate (ratio %g): %s; PPO trains on %s", cfg.calibration_ratio,
+                 {r["task"]: f"imagined {r['imagined']}/{r['starts']}, real {r['real']}/{r['played']}" for r in rows},
+                 kept or "no task")
+    return [e for e in envs if e.task in kept]
 
 
 def replay_sim(ctx, cfg, inp, picked: list):

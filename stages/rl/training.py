@@ -1,4 +1,10 @@
-"""PPO bookkeeping: episode statistics, policy snapshots over wall time, the training-curve plot."""
+"""PPO bookkeeping: episode statistics, policy snapshots over wall time, the training-curve plot.
+
+Success over training is binned by the step an episode *started* at, over the episodes no unfinished
+episode started before (``uncensored``): in the order episodes end, the first ones and the last ones
+are the short ones, and a successful episode is short (it ends when the task is done, a failure at the
+step cap), so a curve by end time starts and finishes too high.
+"""
 from __future__ import annotations
 
 import json
@@ -7,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+
+from stages.evaluate.stats import wilson
 
 
 class TrainingLog(BaseCallback):
@@ -18,13 +26,14 @@ class TrainingLog(BaseCallback):
         self.marks = sorted({int(total_timesteps * (i + 1) / snapshots) for i in range(snapshots)}) if snapshots else []
         self.episodes: list[dict] = []
         self.snapshots: list[dict] = []
-        self._ret = self._len = None
+        self._ret = self._len = self._start = None
         self._t0 = time.perf_counter()
         self._last = 0
 
     def _on_training_start(self) -> None:
         n = self.training_env.num_envs
         self._ret, self._len = np.zeros(n), np.zeros(n, dtype=int)
+        self._start = np.full(n, int(self.num_timesteps), dtype=np.int64)  # (n,) step each env's episode began at
         self._t0 = time.perf_counter()
 
     def _on_step(self) -> bool:
@@ -37,14 +46,14 @@ class TrainingLog(BaseCallback):
         for i in np.nonzero(dones)[0]:
             info = infos[i]
             terminated = info.get("terminated_by_done_head", not info.get("TimeLimit.truncated", False))
-            self.episodes.append({"t": int(self.num_timesteps), "wall": time.perf_counter() - self._t0,
+            self.episodes.append({"t": int(self.num_timesteps), "start": int(self._start[i]), "wall": time.perf_counter() - self._t0,
                                   "return": float(self._ret[i]), "length": int(self._len[i]),
                                   "terminated": bool(terminated), "success": bool(info.get("success", terminated))})
             if self.curves is not None:
                 self.curves.scalar("episode/return", self._ret[i], self.num_timesteps)
                 self.curves.scalar("episode/length", self._len[i], self.num_timesteps)
                 self.curves.scalar("episode/terminated", float(terminated), self.num_timesteps)
-            self._ret[i], self._len[i] = 0.0, 0
+            self._ret[i], self._len[i], self._start[i] = 0.0, 0, self.num_timesteps
         if self.progress is not None:
             self.progress.update(self.num_timesteps - self._last)
             self._last = self.num_timesteps
@@ -57,10 +66,17 @@ class TrainingLog(BaseCallback):
                                    "path": str(path.relative_to(self.out))})
         return True
 
+    def unfinished_from(self) -> int:
+        """The step the earliest still-running episode started at (every episode started before it ended)."""
+        return int(self._start.min()) if self._start is not None else int(self.num_timesteps)
+
     def write(self) -> None:
         (self.out / "snapshots").mkdir(parents=True, exist_ok=True)
         (self.out / "snapshots" / "index.json").write_text(json.dumps(self.snapshots, indent=1) + "\n")
         (self.out / "episodes.json").write_text(json.dumps(self.episodes) + "\n")
+        (self.out / "success_by_start.json").write_text(json.dumps(
+            {"unfinished_from": self.unfinished_from(), "bins": success_by_start(self.episodes, self.unfinished_from())},
+            indent=1) + "\n")
 
     def summary(self, window: int = 50) -> dict:
         eps = self.episodes
@@ -68,19 +84,46 @@ class TrainingLog(BaseCallback):
             return {"episodes": 0}
         last = eps[-window:]
         first = eps[:window]
-        return {"episodes": len(eps), "terminated_fraction": float(np.mean([e["terminated"] for e in eps])),
+        fifths = success_by_start(eps, self.unfinished_from(), bins=5)
+        return {"episodes": len(eps), "success_first_fifth": fifths[0]["success"] if fifths else None,
+                "success_last_fifth": fifths[-1]["success"] if fifths else None, "terminated_fraction": float(np.mean([e["terminated"] for e in eps])),
                 "return_first": float(np.mean([e["return"] for e in first])),
                 "return_last": float(np.mean([e["return"] for e in last])),
                 "length_last": float(np.mean([e["length"] for e in last]))}
 
 
-def plot_training(episodes: list[dict], path: Path, title: str) -> None:
+def uncensored(episodes: list[dict], unfinished_from: int) -> list[dict]:
+    """The episodes that started before ``unfinished_from``: of those, every one that began has ended."""
+    return [e for e in episodes if e["start"] < unfinished_from]
+
+
+def success_by_start(episodes: list[dict], unfinished_from: int, bins: int = 10) -> list[dict]:
+    """Success rate of the uncensored episodes in ``bins`` equal spans of their start step, each with its
+    count and 95% Wilson interval; empty spans are left out."""
+    eps = uncensored(episodes, unfinished_from)
+    if not eps:
+        return []
+    edges = np.linspace(0, unfinished_from, bins + 1)  # (bins + 1,) start-step edges
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        s = [e["success"] for e in eps if lo <= e["start"] < hi]
+        if s:
+            rate, low, high = wilson(int(sum(s)), len(s))
+            out.append({"start_from": int(lo), "start_to": int(hi), "episodes": len(s), "success": rate,
+                        "interval": [low, high]})
+    return out
+
+
+def plot_training(episodes: list[dict], path: Path, title: str, unfinished_from: int | None = None) -> None:
+    """Episode return over env steps; with ``unfinished_from``, a second panel: success by start step."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(5, 3))
+    fig, axes = plt.subplots(1, 2 if unfinished_from is not None else 1, figsize=(9 if unfinished_from is not None else 5, 3),
+                             squeeze=False)
+    ax = axes[0, 0]
     if episodes:
         t = np.array([e["t"] for e in episodes])
         r = np.array([e["return"] for e in episodes])
@@ -91,6 +134,19 @@ def plot_training(episodes: list[dict], path: Path, title: str) -> None:
     ax.set_xlabel("env steps")
     ax.set_ylabel("episode return")
     ax.set_title(title, fontsize=9)
+    if unfinished_from is not None:
+        ax = axes[0, 1]
+        b = success_by_start(episodes, unfinished_from)
+        if b:
+            mid = np.array([(x["start_from"] + x["start_to"]) / 2 for x in b])
+            rate = np.array([x["success"] for x in b])
+            lo, hi = np.array([x["interval"] for x in b]).T  # (bins,) each
+            ax.fill_between(mid, lo, hi, alpha=0.2)
+            ax.plot(mid, rate, "o-", ms=3)
+        ax.set_ylim(0, 1)
+        ax.set_xlabel("env step the episode started at")
+        ax.set_ylabel("training success (95% Wilson)")
+        ax.set_title("episodes that started before any unfinished one", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -68,6 +68,8 @@ def test_all_eight_stages_produce_their_artifacts_and_the_report(store):
     wm = json.loads((artifact(store, "train_wm") / "metrics.json").read_text())
     assert wm["proprio/heldout_ind/h1/tcp_error_cm/head"] is not None
     assert rl["ppo/episodes"] > 0  # episodes ended, by the done head or by truncation
+    by_start = json.loads((artifact(store, "rl") / "success_by_start.json").read_text())
+    assert by_start["unfinished_from"] > 0 and "ppo/success_first_fifth" in rl  # the unbiased training curve
     for stage in ("tokenize", "train_wm", "sft", "rl"):  # training curves for TensorBoard, and the command that shows them
         assert list((artifact(store, stage) / "tensorboard").glob("events.out.tfevents.*")), stage
     shown = cli(store, "show", "rl", "--profile", "toy").stdout
@@ -228,6 +230,35 @@ def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horiz
     episodes = json.loads((rl / "episodes.json").read_text())
     assert episodes and max(e["length"] for e in episodes) <= 3  # the toy profile's horizon is 15
     assert all(e["length"] == 3 for e in episodes if not e["terminated"])
+
+
+def test_the_calibration_gate_trains_ppo_on_the_tasks_it_keeps(store):
+    fail = subprocess.run([sys.executable, "-m", "pipeline", "run", "--profile", "toy", "--until", "rl", "--store", str(store),
+                           "--set", "rl.calibration_ratio=0.5", "--set", "rl.precision_envs=0"],
+                          cwd=REPO, capture_output=True, text=True, timeout=3000)
+    assert fail.returncode != 0 and "wm_play's play has no episode of tasks" in fail.stderr  # the toy play: 2 episodes, 4 tasks
+    cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "wm_play.episodes=4", "--set", "rl.calibration_ratio=0.5",
+        "--set", "rl.precision_envs=0")
+    rl = artifact(store, "rl")
+    table = json.loads((rl / "calibration.json").read_text())
+    rows = {r["task"]: r for r in table["tasks"]}
+    assert table["ratio"] == 0.5 and set(rows) == {"pick_place", "push", "pull", "move_to_aim"}
+    assert all(r["played"] == 1 and r["starts"] >= 1 for r in rows.values())
+    m = json.loads((rl / "metrics.json").read_text())
+    assert m["calibration/kept_tasks"] == sum(r["kept"] for r in rows.values())
+    episodes = json.loads((rl / "episodes.json").read_text())
+    if not m["calibration/kept_tasks"]:
+        assert m["ppo/timesteps"] == 0 and not episodes  # PPO did not run: the policy is SFT's
+    else:
+        assert m["ppo/timesteps"] > 0 and episodes
+    from types import SimpleNamespace
+
+    from stages.rl import Config
+    from stages.rl.inputs import RLInputs
+
+    inp = RLInputs.load(SimpleNamespace(input=lambda name: artifact(store, name), device="cpu"), Config())
+    kept = {t for t, r in rows.items() if r["kept"]}
+    assert m["train_environments"] == len([e for e in inp.training_envs(inp.tasks) if e.task in kept])
 
 
 def test_the_guard_refits_on_replayed_imagined_episodes(store):

@@ -174,3 +174,17 @@ def test_success_weighted_self_imitation_clones_successes_and_leaves_the_critic_
     a1, v1 = _actor_critic(model)
     assert torch.equal(v0, v1) and not torch.equal(a0, a1)
     assert model.policy.evaluate_actions(obs_t, torch.as_tensor(action))[1].mean().item() > before
+
+
+def test_the_noise_scale_multiplies_sfts_action_std_and_leaves_the_mean_alone():
+    torch.manual_seed(0)
+    sft_std = _model().policy.log_std.detach().exp()
+    torch.manual_seed(0)
+    model = _model(noise_scale=0.25)
+    assert torch.allclose(model.policy.log_std.detach().exp(), 0.25 * sft_std)
+    torch.manual_seed(0)
+    same = _model()
+    obs = model.env.reset()
+    obs_t, _ = model.policy.obs_to_tensor(obs)
+    with torch.no_grad():
+        assert torch.allclose(model.policy.get_distribution(obs_t).mode(), same.policy.get_distribution(obs_t).mode())

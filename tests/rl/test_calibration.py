@@ -1,0 +1,64 @@
+"""The calibration gate: which tasks PPO may train on in the world model."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from stages.rl.calibration import TaskCalibration, calibrate, imagined_successes, real_rates
+from stages.rl.imagined import closed_loop
+from stages.sft.policy import make_policy, policy_kwargs
+from tests.rl.tiny import obs_fn, starts_for, tiny_action_wm, tiny_tokenizer
+
+
+@pytest.mark.parametrize("imagined, real, kept", [
+    (0, 46, False),   # the model never shows a success the policy gets half the time (pick-and-place at HEAD)
+    (5, 46, True),    # 0.42 imagined vs 0.48 real
+    (12, 19, False),  # 1.0 imagined vs 0.2 real: successes that do not happen
+    (0, 0, True),     # never solved, never imagined solved
+    (1, 0, False),    # never solved, imagined solved
+])
+def test_a_task_is_kept_when_its_imagined_rate_is_within_the_band_of_its_real_rate(imagined, real, kept):
+    assert TaskCalibration("pick_place", imagined, 12, real, 96).kept(0.5) is kept
+
+
+def test_real_rates_count_play_episodes_per_task_and_name_a_task_never_played():
+    play = [{"env_id": "push/s1", "success": True}, {"env_id": "push/s2", "success": False},
+            {"env_id": "pull/s1", "success": True}, {"env_id": "pick_place/s1", "success": False}]
+    assert real_rates(play, ["push", "pull"]) == {"push": (1, 2), "pull": (1, 1)}
+    with pytest.raises(ValueError, match="move_to_aim"):
+        real_rates(play, ["push", "move_to_aim"])
+
+
+@pytest.fixture(scope="module")
+def parts():
+    tok = tiny_tokenizer()
+    wm = tiny_action_wm(tok)
+    fn = obs_fn(tok)
+    torch.manual_seed(0)
+    policy = make_policy(fn.space, policy_kwargs([0.0] * 7, [0.3] * 6 + [1.0], features_dim=32, net_arch=32))
+    return wm, fn, policy, starts_for(tok, n=4)
+
+
+def test_imagined_successes_are_where_the_done_head_reached_theta_in_the_closed_loop(parts):
+    wm, fn, policy, starts = parts
+    tokens = torch.as_tensor(np.stack([s.tokens for s in starts]))
+    proprio = np.stack([s.proprio for s in starts])
+    peak = np.zeros(len(starts))  # (N,) the done head's highest probability over the horizon
+    for s in closed_loop(policy, wm, fn, tokens, proprio, [s.instruction for s in starts], 4):
+        peak = np.maximum(peak, s.out.done_prob.float().cpu().numpy())
+    theta = float(np.median(peak))
+    done = imagined_successes(policy, wm, fn, starts, 4, theta, batch=3)  # two batches, the same rollouts
+    assert done.tolist() == (peak >= theta).tolist() and 0 < done.sum() < len(starts)
+    assert not imagined_successes(policy, wm, fn, starts, 4, float(peak.max()) + 1e-3).any()
+
+
+def test_calibrate_rates_each_task_on_its_own_starts(parts):
+    wm, fn, policy, starts = parts
+    play = [{"env_id": "push/a", "success": True}, {"env_id": "pull/a", "success": False},
+            {"env_id": "pull/b", "success": False}]
+    table = calibrate(policy, wm, fn, {"push": starts[:3], "pull": starts[3:]}, play, steps=3, theta=1e-6,
+                      per_task=2, seed=0)
+    assert [(c.task, c.imagined, c.starts, c.real, c.played) for c in table] == [("push", 2, 2, 1, 1),
+                                                                                  ("pull", 1, 1, 0, 2)]
+    assert [c.kept(0.5) for c in table] == [True, False]  # theta ~0: every imagined episode "succeeds"
