@@ -1,9 +1,9 @@
 """PPO bookkeeping: episode statistics, policy snapshots over wall time, the training-curve plot.
 
 Success over training is binned by the step an episode *started* at, over the episodes no unfinished
-episode started before (``uncensored``): in the order episodes end, the first ones and the last ones
-are the short ones, and a successful episode is short (it ends when the task is done, a failure at the
-step cap), so a curve by end time starts and finishes too high.
+episode started before (``uncensored``): a successful episode is short (it ends when the task is
+done, a failure at the step cap), so in the order episodes end the first ones are mostly successes
+and a curve by end time starts too high.
 """
 from __future__ import annotations
 
