@@ -122,6 +122,14 @@ def _joined(values: list[float], fmt: str = "{:.0f}") -> str:
     return " / ".join(fmt.format(x) for x in v) if v else "-"
 
 
+def _first_last(metrics: list[dict]) -> str:
+    """'0.41 -> 0.53 / ...': each run's training success in the first and last fifth of PPO by start step
+    ('-' for a run without it: an older artifact, or no episode uncensored)."""
+    pairs = [(m.get("ppo/success_first_fifth"), m.get("ppo/success_last_fifth")) for m in metrics]
+    cells = [f"{a:.2f} -> {b:.2f}" if a is not None and b is not None else "-" for a, b in pairs]
+    return " / ".join(cells) if any(c != "-" for c in cells) else "-"
+
+
 def _cost_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
     rows = []
     for m in ORDER[1:]:
@@ -133,6 +141,7 @@ def _cost_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
                      _joined([r.rl_metrics.get("ppo/seconds", np.nan) for r in mine]),
                      _joined([r.rl_metrics.get("ppo/env_steps_per_second", np.nan) for r in mine], "{:.1f}"),
                      _joined([r.rl_metrics.get("ppo/terminated_fraction", np.nan) for r in mine], "{:.3f}"),
+                     _first_last([r.rl_metrics for r in mine]),
                      _joined([r.seconds.get("evaluate", np.nan) for r in mine])])
     if not rows:
         return None
@@ -141,9 +150,11 @@ def _cost_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
             "model's fine-tune on the SFT policy's play, which every reward point of a seed trains or checks in) is "
             "one run per seed, listed with each of its points. Points may have run two at a time on "
             "the same cores, which inflates these times. Terminated = fraction of PPO training episodes that the "
-            "reward's success signal ended (done head or simulator success).")
+            "reward's success signal ended (done head or simulator success). Training success, first -> last fifth: "
+            "the same success signal in the first and last fifth of PPO's episodes by start step (inside the "
+            "world model the done head's verdict, not the simulator's).")
     return _section("Cost per method", note, ["method", "runs", "wm_play s", "rl stage s", "PPO s", "PPO env steps/s",
-                                              "terminated", "evaluate s"], rows)
+                                              "terminated", "training success, first -> last fifth", "evaluate s"], rows)
 
 
 def _time_curves(runs: list[PointRun]) -> dict[str, dict[str, list[tuple[float, int, int]]]]:
@@ -188,10 +199,16 @@ def _figure_sections(runs: list[PointRun], out: Path) -> list[tuple[str, str, st
         note = ("Snapshots of each PPO run evaluated on a few episodes per split, pooled over seeds; x = PPO wall time "
                 "of the snapshot averaged over seeds (the rl stage's fixed costs, SFT and reward heads, excluded).")
         sections.append(("Success vs training wall time (Fig. 2)", note + "\n\n" + md, f"<p>{note}</p>" + hb))
-    train = {m: sorted(((str(r.seed), r.training) for r in runs if r.method == m), key=lambda x: x[0]) for m in ORDER[1:]}
-    if any(eps for v in train.values() for _, eps in v):
+    train = {m: sorted(((str(r.seed), r.training, r.success_by_start) for r in runs if r.method == m), key=lambda x: x[0])
+             for m in ORDER[1:]}
+    if any(eps for v in train.values() for _, eps, _ in v):
         training_curves(train, LABELS, out / "training_curves.png")
-        sections.append(("PPO training curves, every run (Fig. 3, left)", *image_section(["training_curves.png"])))
+        note = ("Top: episode return in each reward's own units over PPO wall time. Bottom: training success binned by "
+                "the step each episode started at (episodes started before the earliest unfinished one; a success ends "
+                "early, so binning by end time would start too high). Inside the world model success is the done "
+                "head's verdict, not the simulator's: compare it with the imagined-success precision.")
+        md, hb = image_section(["training_curves.png"])
+        sections.append(("PPO training curves, every run (Fig. 3, left)", note + "\n\n" + md, f"<p>{note}</p>" + hb))
     first = runs[0]
     diag = _copy(first.rl_dir / "reward_diagnostics.png", out, "reward_diagnostics.png")
     if diag:

@@ -43,29 +43,44 @@ def success_vs_time(curves: dict[str, dict[str, list[tuple[float, int, int]]]], 
     plt.close(fig)
 
 
-def training_curves(curves: dict[str, list[tuple[str, list[dict]]]], labels: dict[str, str], path: Path,
+def training_curves(curves: dict[str, list[tuple[str, list[dict], list[dict]]]], labels: dict[str, str], path: Path,
                     window: int = 20) -> None:
-    """curves[method] = [(seed label, PPO episodes)] -> one panel per method: episode return (rolling mean of
-    ``window`` episodes) over PPO wall time, a line per seed. Returns are in each reward's own units."""
+    """curves[method] = [(seed label, PPO episodes, success-by-start bins)] -> a column per method, a line per
+    seed. Top: episode return (rolling mean of ``window`` episodes) over PPO wall time, in each reward's own
+    units. Bottom: training success by the step an episode started at (the rl stage's
+    ``success_by_start.json``; success as the training reward saw it: the done head's verdict inside the
+    world model, the simulator's check in ManiSkill); runs without the file (older artifacts) are left out."""
     plt = _plt()
-    methods = [m for m, runs in curves.items() if any(eps for _, eps in runs)]
+    methods = [m for m, runs in curves.items() if any(eps for _, eps, _ in runs)]
     if not methods:
         return
-    fig, axes = plt.subplots(1, len(methods), figsize=(3.6 * len(methods), 3.0), squeeze=False)
-    for ax, method in zip(axes[0], methods):
-        for seed, eps in curves[method]:
-            if not eps:
-                continue
-            wall = np.array([e["wall"] for e in eps], dtype=np.float64)  # (E,)
-            ret = np.array([e["return"] for e in eps], dtype=np.float64)  # (E,)
-            k = min(window, len(ret))
-            smooth = np.convolve(ret, np.ones(k) / k, mode="valid")  # (E - k + 1,)
-            ax.plot(wall, ret, ".", ms=2, alpha=0.25)
-            ax.plot(wall[k - 1:], smooth, label=f"seed {seed}", color=ax.lines[-1].get_color())
-        ax.set_title(labels.get(method, method), fontsize=8)
-        ax.set_xlabel("PPO wall time (s)")
-        ax.set_ylabel("episode return (own reward)")
-        ax.legend(fontsize=7)
+    fig, axes = plt.subplots(2, len(methods), figsize=(3.6 * len(methods), 5.6), squeeze=False)
+    for col, method in enumerate(methods):
+        top, bottom = axes[0, col], axes[1, col]
+        for i, (seed, eps, bins) in enumerate(curves[method]):
+            color = f"C{i}"
+            if eps:
+                wall = np.array([e["wall"] for e in eps], dtype=np.float64)  # (E,)
+                ret = np.array([e["return"] for e in eps], dtype=np.float64)  # (E,)
+                k = min(window, len(ret))
+                smooth = np.convolve(ret, np.ones(k) / k, mode="valid")  # (E - k + 1,)
+                top.plot(wall, ret, ".", ms=2, alpha=0.25, color=color)
+                top.plot(wall[k - 1:], smooth, label=f"seed {seed}", color=color)
+            if bins:
+                mid = np.array([(b["start_from"] + b["start_to"]) / 2 for b in bins])  # (B,) env steps
+                rate = np.array([b["success"] for b in bins])  # (B,)
+                lo, hi = np.array([b["interval"] for b in bins]).T  # (B,) each
+                bottom.fill_between(mid, lo, hi, alpha=0.15, color=color)
+                bottom.plot(mid, rate, "o-", ms=3, label=f"seed {seed}", color=color)
+        top.set_title(labels.get(method, method), fontsize=8)
+        top.set_xlabel("PPO wall time (s)")
+        top.set_ylabel("episode return (own reward)")
+        top.legend(fontsize=7)
+        bottom.set_ylim(0, 1)
+        bottom.set_xlabel("env step the episode started at")
+        bottom.set_ylabel("training success (95% Wilson)")
+        if bottom.lines:
+            bottom.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -19,6 +19,7 @@ class PointRun:
     results: list[dict] = field(default_factory=list)  # evaluated episodes: policy sft / ppo / ppo@<steps>
     snapshots: list[dict] = field(default_factory=list)  # [{timesteps, wall_seconds, ...}] of PPO
     training: list[dict] = field(default_factory=list)  # PPO episodes [{t, wall, return, length, terminated}]
+    success_by_start: list[dict] = field(default_factory=list)  # the rl stage's bins [{start_from, start_to, success, interval}]
     seconds: dict[str, float] = field(default_factory=dict)  # stage -> wall seconds of its run
     sft_dir: Path | None = None  # the sft artifact the point's PPO started from
 
@@ -74,7 +75,8 @@ def gather(point: dict) -> PointRun | None:
                    seed=config.get("seed", point["values"].get("rl.seed")),
                    tasks=_tasks(arts.get("sft")), rl_metrics=metrics, rl_dir=rl_dir,
                    snapshots=_json(rl_dir / "snapshots" / "index.json", []),
-                   training=_json(rl_dir / "episodes.json", []), sft_dir=arts.get("sft"))
+                   training=_json(rl_dir / "episodes.json", []), sft_dir=arts.get("sft"),
+                   success_by_start=_json(rl_dir / "success_by_start.json", {}).get("bins", []))
     run.seconds["rl"] = float(manifest.get("duration_s", float("nan")))
     play_dir = _committed(arts.get("wm_play"))
     if play_dir is not None:  # the world model's fine-tune on the SFT policy's play, shared by a seed's points

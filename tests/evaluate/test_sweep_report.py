@@ -26,9 +26,14 @@ def _point(root: Path, reward: str, seed: int, ppo_wins: int, sft_wins: int, sna
     facts = {"reward": reward, "success_payout": True, "rule_terms": rule_terms if reward == "rule" else None,
              "method": method_of(reward, rule_terms)}
     (rl / "rl.json").write_text(json.dumps(facts if rl_json is None else rl_json))
-    (rl / "metrics.json").write_text(json.dumps({"ppo/seconds": 50.0,
-                                                 "ppo/env_steps_per_second": 40.0, "ppo/terminated_fraction": 0.1,
-                                                 "diagnostics/ind/wm/spearman_progress": 0.5 + seed / 10}))
+    metrics = {"ppo/seconds": 50.0, "ppo/env_steps_per_second": 40.0, "ppo/terminated_fraction": 0.1,
+               "diagnostics/ind/wm/spearman_progress": 0.5 + seed / 10}
+    if seed == 0:  # what the rl stage writes since it bins training success by start step; seed 1 is older
+        metrics.update({"ppo/success_first_fifth": 0.4, "ppo/success_last_fifth": 0.6})
+        (rl / "success_by_start.json").write_text(json.dumps({"unfinished_from": 30, "bins": [
+            {"start_from": 0, "start_to": 15, "episodes": 5, "success": 0.4, "interval": [0.1, 0.8]},
+            {"start_from": 15, "start_to": 30, "episodes": 5, "success": 0.6, "interval": [0.2, 0.9]}]}))
+    (rl / "metrics.json").write_text(json.dumps(metrics))
     (rl / "snapshots" / "index.json").write_text(json.dumps([{"timesteps": 100, "wall_seconds": 10.0 + seed}]))
     (rl / "episodes.json").write_text(json.dumps([{"t": i, "wall": float(i), "return": float(i % 3), "length": 5,
                                                    "terminated": False} for i in range(30)]))
@@ -77,6 +82,7 @@ def test_pooled_counts_sft_once_per_seed_and_figures(tmp_path):
     assert "0.250 / 0.750" in md  # per-run wm IND rates
     assert "100 / 101" in md  # rl stage seconds of the two wm seeds
     assert "ind/wm/spearman_progress | 4 of 4 | 0.550" in md
+    assert "| 0.40 -> 0.60 / - |" in md  # wm's training success by start fifth: seed 0's, seed 1 has none
     for name in ("success_vs_time.png", "training_curves.png", "rollout_wm_ind.gif", "rollout_sft_ood.gif",
                  "extreme_actions.png", "rollouts.png", "report.html"):
         assert (out / name).is_file(), name
