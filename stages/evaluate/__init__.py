@@ -55,7 +55,7 @@ class Config(BaseModel):
     splits: list[Literal["ind", "ood", "extra"]] = Field(["ind", "ood", "extra"], min_length=1)
     snapshot_episodes: int = Field(4, ge=0, description="episodes per (snapshot, split) for success vs training time")
     extra_scenes: list[ExtraScene] = Field([], description="more OOD scenes (a list, or a path to a YAML list)")
-    videos: bool = Field(True, description="GIF of one IND and one OOD episode per policy")
+    videos: bool = Field(True, description="a GIF of the first IND and the first OOD episode of each task, per policy")
     image_size: int | None = Field(None, ge=16, description="camera size; None = collect's (sim.json), "
                                    "any other value must equal it")
     robot_mesh: Literal["lowpoly", "stock"] | None = Field(None, description="None = collect's; any other value must equal it")

@@ -78,12 +78,10 @@ def build_jobs(ctx, cfg, facts: dict) -> list[Job]:
     for policy in cfg.policies:
         path = paths[policy]
         for split in cfg.splits:
-            recorded = False
             for ti, task in enumerate(tasks):
                 if not scenes[(task, split)]:
                     continue
-                record = cfg.videos and split in ("ind", "ood") and not recorded
-                recorded = recorded or record
+                record = cfg.videos and split in ("ind", "ood")  # the first episode of each task
                 seed0 = SEED_BASE + cfg.seed * 100_000 + ti * 10_000 + ("ind", "ood", "extra").index(split) * 1_000
                 jobs += _spread(policy, path, task, split, scenes[(task, split)], cfg.episodes, seed0, ctx, cfg, text, record,
                                 int(facts["frame_skip"]))

@@ -73,18 +73,23 @@ def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
         if (ctx.input("rl") / name).is_file():
             sections.append((title, *image_section([name])))
 
-    # Figs. 4-5: one IND and one OOD rollout per policy
-    gifs = []
+    # Figs. 4-5: the first IND and the first OOD rollout of each task per policy, as GIFs and one strip figure
+    gifs, strips = [], []
     for r in main:
         if "frames" in r:
-            name = f"rollout_{r['policy']}_{r['split']}.gif"
+            name = f"rollout_{r['policy']}_{r['split']}_{r['task']}.gif"
             write_gif(r["frames"], out / name)
-            gifs.append((name, f"{method_label(r['policy'], method)}, {SPLIT_NAMES[r['split']]}: {r['instruction']} "
-                               f"({'success' if r['success'] else 'failure'}, {r['steps']} steps)"))
+            cap = (f"{method_label(r['policy'], method)}, {SPLIT_NAMES[r['split']]}: {r['instruction']} "
+                   f"({'success' if r['success'] else 'failure'}, {r['steps']} steps)")
+            gifs.append((name, cap))
+            idx = np.linspace(0, len(r["frames"]) - 1, min(8, len(r["frames"]))).round().astype(int)  # (<= 8,)
+            strips.append((cap, r["frames"][idx]))  # (<= 8, H, W, 3) evenly spaced control steps
     if gifs:
-        md = "\n\n".join(f"{cap}\n\n![{n}]({n})" for n, cap in gifs)
-        hb = "".join(f"<figure><img src='{n}'><figcaption>{cap}</figcaption></figure>" for n, cap in gifs)
-        sections.append(("Rollouts in the simulator (Figs. 4-5)", md, hb))
+        strip_figure(strips, out / "rollouts.png", "every recorded episode: 8 evenly spaced frames (third view)")
+        md = "\n\n".join(f"{cap}\n\n![{n}]({n})" for n, cap in [("rollouts.png", "All of them at a glance"), *gifs])
+        hb = "".join(f"<figure><img src='{n}'><figcaption>{cap}</figcaption></figure>"
+                     for n, cap in [("rollouts.png", "All of them at a glance"), *gifs])
+        sections.append(("Rollouts in the simulator, the first episode of each task (Figs. 4-5)", md, hb))
 
     extreme = _extreme_actions(ctx, out)
     if extreme:

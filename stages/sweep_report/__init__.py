@@ -222,8 +222,11 @@ def _figure_sections(runs: list[PointRun], out: Path) -> list[tuple[str, str, st
         if run is None:
             continue
         policy = "sft" if m == "sft" else "ppo"
-        for split in ("ind", "ood"):
-            name = _copy(run.eval_dir / f"rollout_{policy}_{split}.gif", out, f"rollout_{m}_{split}.gif")
+        for split in ("ind", "ood"):  # the first task's episode (older evaluate artifacts: their one GIF per split)
+            src = run.eval_dir / f"rollout_{policy}_{split}_{run.tasks[0]}.gif" if run.tasks else None
+            if src is None or not src.is_file():
+                src = run.eval_dir / f"rollout_{policy}_{split}.gif"
+            name = _copy(src, out, f"rollout_{m}_{split}.gif")
             if name:
                 gifs.append((name, f"{LABELS[m]}, {split.upper()} ({run.label})"))
     if gifs:

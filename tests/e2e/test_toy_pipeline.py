@@ -57,7 +57,10 @@ def test_all_eight_stages_produce_their_artifacts_and_the_report(store):
     ev = artifact(store, "evaluate")
     report = (ev / "report.md").read_text()
     assert "success rate" in report.lower() and "IND" in report and "OOD" in report
-    assert (ev / "report.html").is_file() and list(ev.glob("rollout_*.gif"))
+    assert (ev / "report.html").is_file() and (ev / "rollouts.png").is_file()
+    results = [json.loads(x) for x in (ev / "results.jsonl").read_text().splitlines()]
+    cells = {(r["policy"], r["split"], r["task"]) for r in results if "@" not in r["policy"] and r["split"] != "extra"}
+    assert len(cells) > 2 and {f"rollout_{p}_{s}_{t}.gif" for p, s, t in cells} == {f.name for f in ev.glob("rollout_*.gif")}
     metrics = json.loads((ev / "metrics.json").read_text())
     assert any(k.startswith("success/ppo/all/ind") for k in metrics)
     assert any(k.startswith("success/sft/all/ind") for k in metrics)

@@ -54,7 +54,10 @@ def _point(root: Path, reward: str, seed: int, ppo_wins: int, sft_wins: int, sna
                     rows.append({"policy": policy, "task": tasks[i % len(tasks)], "split": split, "seed": i,
                                  "success": i < wins, "steps": 10, "instruction": "x"})
         (ev / "results.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
-        for name in ("rollout_ppo_ind.gif", "rollout_sft_ood.gif"):
+        # the evaluate stage's GIF names: one per task since it records each task's first episode; seed 1 older
+        names = (f"rollout_ppo_ind_{tasks[0]}.gif", f"rollout_sft_ood_{tasks[0]}.gif") if seed == 0 else \
+            ("rollout_ppo_ind.gif", "rollout_sft_ood.gif")
+        for name in names:
             write_gif(np.random.default_rng(seed).integers(0, 255, (3, 8, 8, 3), dtype=np.uint8), ev / name)
         (ev / "extreme_actions.png").write_bytes(b"\x89PNG")  # only copied
         arts["evaluate"] = ev
