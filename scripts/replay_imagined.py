@@ -36,6 +36,9 @@ def main() -> None:
                     help="write a frame strip: per environment with an imagined done, the imagined frames over the replayed ones")
     ap.add_argument("--every", type=int, default=4, help="strip: one frame every this many policy steps")
     ap.add_argument("--strip-rows", type=int, default=6, help="strip: environments shown (those with an imagined done first)")
+    ap.add_argument("--gripper", action="store_true",
+                    help="per environment, the gripper opening (cm) the world model imagined (its proprioception head) "
+                         "beside the replay's, every --every steps up to the imagined done")
     ap.add_argument("--guard", action="store_true",
                     help="apply the rl artifact's guard.pt (rl.guard): an imagined success then needs its confirmation, "
                          "as in the guarded env; the done head alone is printed beside it")
@@ -54,7 +57,7 @@ def main() -> None:
                    steps=args.steps, decode_steps=args.decode_steps, temperature=args.temperature, wm_play=args.wm_play,
                    wm_net=args.wm_net)
     tok, obs_fn, wm, policy, specs, sim = c.tok, c.obs_fn, c.wm, c.policy, c.specs, c.sim
-    record = {} if args.strip else None
+    record = {} if (args.strip or args.gripper) else None
     guard = load_guard(args.rl / "guard.pt", args.theta) if args.guard else None
     try:
         rows = imagine_and_replay(policy, wm, tok, obs_fn, sim, specs, [args.seed + i for i in range(len(specs))],
@@ -91,6 +94,26 @@ def main() -> None:
         gap = tcp_gap_to_done(r)
         print(f"    {r.env_id:55s} done_at {r.done_at:3d}  peak p {max(r.done_probs):.3f}  replay success {r.success}"
               f" (first at {r.first_success})" + (f"  TCP gap to done {100 * gap:.1f} cm" if gap is not None else ""))
+    if args.gripper:
+        print_gripper(rows, record, args.every)
+
+
+def print_gripper(rows, record: dict, every: int) -> None:
+    """Imagined vs replayed gripper opening (cm; the proprioception's last entry) per environment.
+
+    A real grasp leaves the closed fingers on the object (an opening of its width), a missed one
+    closes them on nothing (~0): does the imagined proprioception tell the two apart where the
+    imagined frames do not?"""
+    print("  gripper opening (cm), imagined / replayed, every %d steps up to the imagined done (or the end):" % every)
+    for i, r in enumerate(rows):
+        imagined = record["proprio"][i, :, -1]  # (T,) after steps 1..T
+        replayed = [p[-1] for p in record["replay_proprio"][i]]  # after steps 1.. until the replay ended
+        end = r.done_at if r.done_at > 0 else len(imagined)
+        pairs = [f"{imagined[t]:.1f}/" + (f"{replayed[t]:.1f}" if t < len(replayed) else "-")
+                 for t in range(every - 1, end, every)]
+        tag = "no imagined done" if r.done_at < 0 else ("confirmed" if r.success else "FALSE")
+        print(f"    {r.env_id.split('/')[0]:12s} {tag:16s} min imagined {imagined[:end].min():.1f}, "
+              f"min replayed {min(replayed[:end]) if replayed else float('nan'):.1f}: " + " ".join(pairs))
 
 
 def load_guard(path: Path, theta: float):

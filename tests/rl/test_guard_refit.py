@@ -78,3 +78,26 @@ def test_replay_imagined_loads_the_guard_an_rl_artifact_saved(tmp_path):
     assert guard(h)[1].tolist() == (saved.probs(h).mean(0) >= 0.5).tolist()
     with pytest.raises(SystemExit, match="rl.guard=true"):
         load_guard(tmp_path / "missing.pt", theta=0.5)
+
+
+def test_replay_imagined_prints_imagined_beside_replayed_gripper_opening(capsys):
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+
+    from stages.rl.imagined import Replay
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+    from replay_imagined import print_gripper
+
+    proprio = np.zeros((2, 8, 10), np.float32)  # (N, T, 10) imagined, the opening last
+    proprio[0, :, -1] = [8, 6, 4, 4, 4, 4, 4, 4]  # closes on an imagined object
+    proprio[1, :, -1] = [8, 6, 2, 1, 0.5, 0.5, 0.5, 0.5]
+    replayed = [[np.full(10, v, np.float32) for v in (8, 4, 0, 0)], [np.full(10, 8, np.float32)] * 8]
+    rows = [Replay("pick_place/a", done_at=4, success=False), Replay("push/b", done_at=-1, success=False)]
+    print_gripper(rows, {"proprio": proprio, "replay_proprio": replayed}, every=2)
+    out = capsys.readouterr().out.splitlines()
+    assert "FALSE" in out[1] and "min imagined 4.0, min replayed 0.0: 6.0/4.0 4.0/0.0" in out[1]
+    assert "no imagined done" in out[2] and "min imagined 0.5, min replayed 8.0" in out[2]
+    assert out[2].count("/8.0") == 4  # every 2nd of 8 steps to the end without a done
