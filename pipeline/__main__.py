@@ -69,10 +69,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("verify", help="re-hash the current keys' artifacts against their manifests")
     _common(p), _config_args(p)
     p.add_argument("stages", nargs="*", metavar="STAGE", help="stages to verify (default: every stage)")
-    p = sub.add_parser("gc", help="remove staging leftovers, old run records, unreferenced artifacts")
+    p = sub.add_parser("gc", help="remove staging leftovers, old run records, unreferenced artifacts, "
+                                  "checkpoints of committed keys")
     _common(p)
     p.add_argument("--dry-run", action="store_true")
     p.add_argument("--keep-runs", type=int, default=20, help="run records to keep (newest)")
+    p.add_argument("--partial", action="store_true",
+                   help="also remove the checkpoints of unfinished runs (the next run of those keys starts over)")
     return ap
 
 
@@ -245,6 +248,12 @@ def cmd_gc(project: Project, args) -> int:
         except (OSError, ValueError, KeyError):
             continue
     doomed.extend(path for _, key, path in store.committed() if key not in keep)
+    kept_partial = []
+    for stage, key, path in store.partials():  # a run killed between its commit and dropping them, or --partial
+        if args.partial or store.lookup(stage, key).state == "ok":
+            doomed.append(path)
+        else:
+            kept_partial.append(f"{stage} {key[:12]}")
     for d in doomed:
         print(f"{'would remove' if args.dry_run else 'remove'} {d}")
         if not args.dry_run:
@@ -253,6 +262,9 @@ def cmd_gc(project: Project, args) -> int:
             else:
                 d.unlink(missing_ok=True)
     print(f"gc: {len(doomed)} item(s) {'to remove' if args.dry_run else 'removed'}")
+    if kept_partial:
+        print(f"gc: kept the checkpoints of {len(kept_partial)} unfinished run(s) ({', '.join(kept_partial)}); "
+              "their next run resumes from them; --partial removes them")
     return 0
 
 

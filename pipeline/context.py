@@ -6,7 +6,9 @@ committed artifacts of the stages it ``needs``), writes every output under ``ctx
 staging directory), and never reads another stage's config. When ``run`` returns, the engine
 commits ``ctx.out`` atomically; when it raises, the staging directory is discarded. A stage may also
 expose ``unread_needs(config) -> list[str]``, those of its ``needs`` a config does not read
-(``pipeline.plan.Project.used_needs``); ``ctx.inputs`` then holds the rest.
+(``pipeline.plan.Project.used_needs``); ``ctx.inputs`` then holds the rest. A long stage may keep
+named checkpoints with ``ctx.checkpoints()`` that outlive a killed run of the same key
+(``pipeline.checkpoints``).
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 from pydantic import BaseModel
 
+from pipeline.checkpoints import Checkpoints
 from pipeline.progress import Progress
 
 
@@ -38,6 +41,11 @@ class StageContext:
     log: logging.Logger = field(default_factory=lambda: logging.getLogger("stage"))
     mapper: Callable[..., list] | None = None  # set by the executor; see ``map``
     progress_factory: Callable[..., Progress] | None = None
+    partial: Path | None = None  # this key's checkpoint directory (kept across a kill); None: checkpoints off
+
+    def checkpoints(self) -> Checkpoints:
+        """Named checkpoints that survive a crash or kill of this key, so a rerun resumes (pipeline.checkpoints)."""
+        return Checkpoints(self.partial, self.log)
 
     def progress(self, total: int | None, desc: str, unit: str = "it") -> Progress:
         """A progress bar for long work inside the stage; use as a context manager, call ``update(n)``."""

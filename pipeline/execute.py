@@ -123,6 +123,9 @@ def execute_node(p: dict[str, Any]) -> dict[str, Any]:
         mod = importlib.import_module(p["module"])
         config = mod.Config.model_validate(p["config"])
         staging = store.staging(stage, key)
+        if p["force"]:
+            store.drop_partial(stage, key)  # --force means from scratch
+        partial = store.open_partial(stage, key)
         log, handler = _stage_logger(stage, key, staging / "log.txt")
         from pipeline.executors import mapper_for
 
@@ -138,12 +141,16 @@ def execute_node(p: dict[str, Any]) -> dict[str, Any]:
             log=log,
             mapper=mapper_for(p["executor"]),
             progress_factory=lambda total, desc, unit: Progress(total=total, desc=f"{stage}: {desc}", unit=unit),
+            partial=partial,
         )
         _seed_everything(p["seed"])
         try:
             file_only = {"file_only": True}  # the console already has the runner's one-line header
             log.info("started %s %s (profile %s, device %s)", stage, key, p["profile"], p["device"], extra=file_only)
             log.info("config: %s", json.dumps(p["config"], sort_keys=True), extra=file_only)
+            resumed = ctx.checkpoints().names()
+            if resumed:
+                log.info("checkpoints from an earlier, unfinished run of this key: %s", ", ".join(resumed))
             if p["inputs"]:
                 log.info("inputs verified: %s, %.1f MiB in %.2f s", ", ".join(sorted(p["inputs"])), in_bytes / 2**20, t_in)
             mod.run(ctx)
@@ -160,7 +167,11 @@ def execute_node(p: dict[str, Any]) -> dict[str, Any]:
             shutil.rmtree(staging, ignore_errors=True)
             if isinstance(e, (KeyboardInterrupt, SystemExit)):
                 raise
-            raise StageFailed(stage, key, f"{e.__class__.__name__}: {e}", kept) from e
+            resumable = ctx.checkpoints().names()
+            if not resumable:
+                store.drop_partial(stage, key)
+            note = f" (checkpoints kept for the next run: {', '.join(resumable)})" if resumable else ""
+            raise StageFailed(stage, key, f"{e.__class__.__name__}: {e}{note}", kept) from e
         handler.close()
         log.removeHandler(handler)
         duration = time.perf_counter() - t0
@@ -170,5 +181,6 @@ def execute_node(p: dict[str, Any]) -> dict[str, Any]:
             "duration_s": round(duration, 3), "run_id": p["run_id"], "profile": p["profile"],
             "label": p["label"], "device": p["device"], "module": p["module"],
         })
+        store.drop_partial(stage, key)
         store.write_ref(p["label"], stage, key, p["key_inputs"])
     return {"stage": stage, "key": key, "action": "ran", "duration_s": round(duration, 3)}

@@ -11,6 +11,7 @@ from typing import Any, Mapping, Sequence
 import yaml
 from pydantic import BaseModel, ValidationError
 
+from pipeline.checkpoints import Checkpoints
 from pipeline.errors import PipelineError
 from pipeline.graph import ancestors, descendants, select, topo_order
 from pipeline.keys import code_digest, stage_key
@@ -233,6 +234,12 @@ class Project:
             node.reasons = ["forced"] if force else []
             return
         node.status = "run"
+        self._judge_missing(node, look)
+        resumable = Checkpoints(self.store.partial(node.stage, node.key)).names()
+        if resumable:
+            node.reasons.append(f"resumes from checkpoints: {', '.join(resumable)}")
+
+    def _judge_missing(self, node: Node, look) -> None:
         if look.state == "invalid":
             node.reasons = [f"invalid artifact, treated as missing: {look.problem}"]
             return

@@ -8,6 +8,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from pipeline.errors import PipelineError
+from pipeline.store import RESERVED
 
 SCHEMA = 1
 
@@ -101,6 +102,10 @@ def load_spec(path: str | Path) -> PipelineSpec:
 
 def _check_references(spec: PipelineSpec, path: Path) -> None:
     names = set(spec.stages)
+    clash = sorted(names & set(RESERVED))
+    if clash:
+        raise PipelineError(f"{path}: stages.{clash[0]}: the name is reserved for the store's own directories "
+                            f"({', '.join(RESERVED)}); rename the stage")
     for name, st in spec.stages.items():
         for need in st.needs:
             if need not in names:

@@ -6,6 +6,8 @@ Layout under the store root::
     tmp/<stage>-<key[:12]>-<pid>.<start>-<rand>/      staging dirs (same filesystem), swept by gc
     locks/<key>.lock                                  per-key advisory locks
     refs/<label>/<stage>.json                         the key each label (profile, sweep point) last used
+    partial/<stage>/<key>/<name>/                     a running or killed stage's checkpoints
+                                                      (pipeline.checkpoints), dropped at commit
     runs/<time>-<id>.json                             run records
 
 A key exists only when its ``manifest.json`` exists and validates. Outputs are written into a
@@ -29,6 +31,7 @@ from typing import Any, Iterator
 import blake3
 
 MANIFEST = "manifest.json"
+RESERVED = ("tmp", "locks", "refs", "runs", "sweeps", "partial")  # store directories that are not stages
 MANIFEST_SCHEMA = 1
 _REQUIRED = ("schema", "stage", "key", "key_inputs", "files", "created")
 
@@ -217,6 +220,36 @@ class Store:
         os.rename(path, trash)
         shutil.rmtree(trash, ignore_errors=True)
 
+    # ---- partial work (a stage's checkpoints; pipeline.checkpoints) ----------------------------
+    def partial(self, stage: str, key: str) -> Path:
+        """The directory of (stage, key)'s checkpoints (it may not exist)."""
+        return self.root / "partial" / stage / key
+
+    def open_partial(self, stage: str, key: str) -> Path:
+        """``partial(stage, key)`` for the run about to write it; call under the key's lock. Half-written
+        checkpoints a killed writer left (``.tmp-*``, ``.trash-*``) are removed: the lock means no
+        other writer of this key is alive."""
+        d = self.partial(stage, key)
+        if d.is_dir():
+            for leftover in list(d.glob(".tmp-*")) + list(d.glob(".trash-*")):
+                shutil.rmtree(leftover, ignore_errors=True)
+        return d
+
+    def drop_partial(self, stage: str, key: str) -> None:
+        """Remove (stage, key)'s checkpoints (after its commit, or before a forced rerun)."""
+        d = self.partial(stage, key)
+        if d.exists():
+            self.discard(d)
+
+    def partials(self) -> Iterator[tuple[str, str, Path]]:
+        """(stage, key, path) of every checkpoint directory in the store."""
+        base = self.root / "partial"
+        if not base.is_dir():
+            return
+        for stage_dir in sorted(p for p in base.iterdir() if p.is_dir()):
+            for d in sorted(p for p in stage_dir.iterdir() if p.is_dir()):
+                yield stage_dir.name, d.name, d
+
     # ---- locks -------------------------------------------------------------------------------
     @contextlib.contextmanager
     def lock(self, key: str) -> Iterator[None]:
@@ -260,7 +293,7 @@ class Store:
     def committed(self) -> Iterator[tuple[str, str, Path]]:
         """(stage, key, path) of every directory that looks like an artifact slot."""
         for stage_dir in sorted(self.root.iterdir()):
-            if stage_dir.name in ("tmp", "locks", "refs", "runs", "sweeps") or not stage_dir.is_dir():
+            if stage_dir.name in RESERVED or not stage_dir.is_dir():
                 continue
             for prefix in sorted(stage_dir.iterdir()):
                 if prefix.is_dir():

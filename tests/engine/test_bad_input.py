@@ -77,3 +77,9 @@ def test_missing_stage_module_is_a_clear_error(ws):
     ws.spec.write_text(ws.spec.read_text().replace("ts.goals", "ts.goalz"))
     err = _fails(ws, "run")
     assert "stage 'goals': cannot import module 'ts.goalz'" in err
+
+
+def test_a_stage_named_like_a_store_directory_is_refused(ws):
+    ws.spec.write_text(ws.spec.read_text().replace("  goals:    {", "  partial:  {").replace("needs: [goals, train_wm]", "needs: [partial, train_wm]"))
+    r = ws.cli("status", check=False)
+    assert r.returncode == 2 and "stages.partial: the name is reserved" in r.stderr and not (ws.store / "partial").exists()

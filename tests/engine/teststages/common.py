@@ -31,6 +31,32 @@ def square(x: int) -> int:
     return x * x
 
 
+def _checkpointed_half(ctx) -> float | None:
+    """With TEST_CHECKPOINT naming this stage (or '*'): a first half of the work kept as a checkpoint,
+    computed or resumed (which one goes to TEST_CHECKPOINT_LOG); TEST_CHECKPOINT_FAIL then fails the
+    stage after it."""
+    if os.environ.get("TEST_CHECKPOINT") not in (ctx.stage, "*"):
+        return None
+    cp = ctx.checkpoints()
+    done = cp.load("half")
+    if done is None:
+        value = random.random()
+        with cp.save("half") as d:
+            (d / "half.json").write_text(json.dumps(value))
+        how = "computed"
+    else:
+        value = json.loads((done / "half.json").read_text())
+        random.random()  # the draw the first half made, so the later draws match an uninterrupted run's
+        how = "resumed"
+    log = os.environ.get("TEST_CHECKPOINT_LOG")
+    if log:
+        with open(log, "a") as f:
+            f.write(f"{ctx.stage} {how}\n")
+    if os.environ.get("TEST_CHECKPOINT_FAIL") == ctx.stage:
+        raise RuntimeError(f"{ctx.stage} failed after its checkpoint")
+    return value
+
+
 def run_stage(ctx) -> None:
     cfg = ctx.config
     log = os.environ.get("TEST_EXEC_LOG")
@@ -38,6 +64,7 @@ def run_stage(ctx) -> None:
         with open(log, "a") as f:
             f.write(f"{ctx.stage} {os.getpid()} {ctx.jobs}\n")
     inputs = {name: json.loads((path / "result.json").read_text()) for name, path in sorted(ctx.inputs.items())}
+    half = _checkpointed_half(ctx)
     # Sleeping is driven by the environment, not the config, so a killed run and its rerun share keys.
     if os.environ.get("TEST_SLEEP_STAGE") in (ctx.stage, "*"):
         (ctx.out / "partial.bin").write_bytes(b"x" * 1024)
@@ -52,7 +79,7 @@ def run_stage(ctx) -> None:
     ctx.log.info("total %d", total)
     _cached_model()
     result = {"stage": ctx.stage, "total": total, "seed": ctx.seed, "draw": random.random(), "reward": cfg.reward, "shards": shards,
-              "inputs": sorted(inputs)}
+              "inputs": sorted(inputs), **({"half": half} if half is not None else {})}
     if cfg.blob_mb:
         with open(ctx.out / "blob.bin", "wb") as f:
             chunk = os.urandom(1 << 20)
