@@ -36,6 +36,8 @@ import tempfile
 from pathlib import Path
 from typing import Iterator
 
+from pipeline.store import fsync_dir, file_digest
+
 INDEX = ".checkpoint.json"
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
@@ -87,7 +89,7 @@ class Checkpoints:
         tmp.mkdir()
         try:
             yield tmp
-            files = {str(p.relative_to(tmp)): {"size": p.stat().st_size, "blake3": _digest(p)}
+            files = {str(p.relative_to(tmp)): {"size": p.stat().st_size, "blake3": file_digest(p)}
                      for p in sorted(tmp.rglob("*")) if p.is_file()}
             (tmp / INDEX).write_text(json.dumps({"files": files}, indent=1, sort_keys=True) + "\n")
             _fsync_tree(tmp)
@@ -95,7 +97,7 @@ class Checkpoints:
             if final.exists():
                 self._remove(final)
             os.rename(tmp, final)
-            _fsync(self.root)
+            fsync_dir(self.root)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -105,12 +107,6 @@ class Checkpoints:
         trash = d.parent / f".trash-{d.name}-{secrets.token_hex(4)}"
         os.rename(d, trash)
         shutil.rmtree(trash, ignore_errors=True)
-
-
-def _digest(path: Path) -> str:
-    from pipeline.store import file_digest
-
-    return file_digest(path)
 
 
 def _verify(d: Path) -> str:
@@ -125,17 +121,9 @@ def _verify(d: Path) -> str:
             return f"{rel} is missing"
         if p.stat().st_size != meta["size"]:
             return f"{rel} has {p.stat().st_size} bytes, its index says {meta['size']}"
-        if _digest(p) != meta["blake3"]:
+        if file_digest(p) != meta["blake3"]:
             return f"{rel} differs from its blake3 digest"
     return ""
-
-
-def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _fsync_tree(d: Path) -> None:
@@ -143,4 +131,4 @@ def _fsync_tree(d: Path) -> None:
         if p.is_file():
             with open(p, "rb+") as f:
                 os.fsync(f.fileno())
-    _fsync(d)
+    fsync_dir(d)

@@ -59,7 +59,7 @@ def file_digest(path: Path) -> str:
     return h.hexdigest()
 
 
-def _fsync_dir(path: Path) -> None:
+def fsync_dir(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -195,7 +195,7 @@ class Store:
             **(extra or {}),
         }
         write_json_atomic(staging / MANIFEST, manifest)
-        _fsync_dir(staging)
+        fsync_dir(staging)
         final = self.path(stage, key)
         final.parent.mkdir(parents=True, exist_ok=True)
         look = self.lookup(stage, key)
@@ -205,7 +205,7 @@ class Store:
         if final.exists():
             self.discard(final)
         os.rename(staging, final)
-        _fsync_dir(final.parent)
+        fsync_dir(final.parent)
         return final
 
     def replace(self, stage: str, key: str) -> None:

@@ -5,6 +5,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +36,16 @@ class Workspace:
     def popen(self, *args: str, **env) -> subprocess.Popen:
         return subprocess.Popen([sys.executable, "-m", "pipeline", *args], cwd=self.root, env=self.env(**env),
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def popen_until(self, marker: Path, *args: str, timeout: float = 60, **env) -> subprocess.Popen:
+        """``popen(*args, TEST_MARKER=marker, **env)``, returned once the stage has created ``marker``."""
+        proc = self.popen(*args, TEST_MARKER=marker, **env)
+        deadline = time.time() + timeout
+        while not marker.exists():
+            assert proc.poll() is None, proc.communicate()
+            assert time.time() < deadline, f"no {marker} after {timeout} s"
+            time.sleep(0.05)
+        return proc
 
     def executions(self) -> list[str]:
         """Stage names in the order they executed since the last reset."""

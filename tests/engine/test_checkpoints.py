@@ -5,7 +5,6 @@ import json
 import logging
 import os
 import signal
-import time
 
 import pytest
 
@@ -86,12 +85,7 @@ def test_a_killed_stage_resumes_and_force_starts_over(ws):
     env = {"TEST_CHECKPOINT": "goals", "TEST_CHECKPOINT_LOG": ws.root / "cp.log"}
     ws.cli("run", "--until", "train_wm")
     marker = ws.root / "marker"
-    proc = ws.popen("run", "--until", "goals", TEST_SLEEP_STAGE="goals", TEST_SLEEP="60", TEST_MARKER=marker, **env)
-    deadline = time.time() + 60
-    while not marker.exists():
-        assert proc.poll() is None, proc.communicate()
-        assert time.time() < deadline
-        time.sleep(0.05)
+    proc = ws.popen_until(marker, "run", "--until", "goals", TEST_SLEEP_STAGE="goals", TEST_SLEEP="60", **env)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     assert "resumes from checkpoints: half" in ws.cli("status", "--until", "goals").stdout

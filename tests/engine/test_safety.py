@@ -18,12 +18,7 @@ def test_sigkill_mid_write_leaves_no_manifest_and_next_run_completes(ws):
     ws.cli("run", "--until", "train_wm")
     before = {s: [p.read_bytes() for p in ms] for s, ms in _manifests(ws).items()}
     marker = ws.root / "marker"
-    proc = ws.popen("run", TEST_SLEEP_STAGE="goals", TEST_SLEEP="60", TEST_MARKER=marker)
-    deadline = time.time() + 60
-    while not marker.exists():
-        assert proc.poll() is None, proc.communicate()
-        assert time.time() < deadline
-        time.sleep(0.05)
+    proc = ws.popen_until(marker, "run", TEST_SLEEP_STAGE="goals", TEST_SLEEP="60")
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     after = _manifests(ws)
@@ -94,13 +89,7 @@ def _alive(pid: int) -> bool:
 def test_sigkill_of_a_parallel_sweep_takes_its_workers_down_and_the_rerun_completes(ws):
     ws.cli("run", "--until", "goals")
     marker = ws.root / "marker"
-    proc = ws.popen("sweep", "rewards", "--until", "rl", "--jobs", "2", TEST_SLEEP_STAGE="rl", TEST_SLEEP="120",
-                    TEST_MARKER=marker)
-    deadline = time.time() + 60
-    while not marker.exists():
-        assert proc.poll() is None, proc.communicate()
-        assert time.time() < deadline
-        time.sleep(0.05)
+    proc = ws.popen_until(marker, "sweep", "rewards", "--until", "rl", "--jobs", "2", TEST_SLEEP_STAGE="rl", TEST_SLEEP="120")
     workers = [int(line.split()[1]) for line in ws.exec_log.read_text().splitlines() if line.startswith("rl ")]
     assert workers and all(w != proc.pid for w in workers)  # the rl points run in pool workers
     os.kill(proc.pid, signal.SIGKILL)
@@ -116,12 +105,7 @@ def test_sigkill_of_a_parallel_sweep_takes_its_workers_down_and_the_rerun_comple
 
 def test_a_stage_whose_source_changed_during_the_run_refuses_to_run(ws):
     marker = ws.root / "tokenize.started"
-    proc = ws.popen("run", "--until", "train_wm", TEST_SLEEP_STAGE="tokenize", TEST_SLEEP="2", TEST_MARKER=marker)
-    deadline = time.time() + 60
-    while not marker.exists():
-        assert proc.poll() is None, proc.communicate()
-        assert time.time() < deadline
-        time.sleep(0.05)
+    proc = ws.popen_until(marker, "run", "--until", "train_wm", TEST_SLEEP_STAGE="tokenize", TEST_SLEEP="2")
     src = ws.root / "ts" / "train_wm.py"  # planned already: its key names the source as it was
     src.write_text(src.read_text() + "\n# edited while the run was going\n")
     _, err = proc.communicate(timeout=120)
