@@ -12,7 +12,9 @@ artifact, in the same order (``--sft s0 s1 s2 -- p0 p1 p2``); the pooled lines p
 Two PPO policies against each other (e.g. ``wm`` minus ``rule``): ``--baseline-policy ppo``.
 
 Prints, per evaluate artifact and pooled, the success difference per split (tasks pooled) and per
-task and split: mean [95% interval] (n, states only PPO solved / only SFT solved).
+task and split: mean [95% interval] (n, states only PPO solved / only SFT solved); with several
+compared artifacts (seeds), also the mean of their differences with a Student-t interval over them
+(what another seed would give: stages/sweep_report/paired.py).
 """
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.sweep_report.paired import by_split, fmt_difference, pair_up  # noqa: E402
+from stages.sweep_report.paired import across_seeds, by_split, fmt_across_seeds, fmt_difference, pair_up  # noqa: E402
 
 
 def results(ev: Path, policy: str) -> list[dict]:
@@ -45,7 +47,7 @@ def main() -> None:
     if len(args.sft) not in (1, len(args.evaluate)):
         raise SystemExit(f"--sft: {len(args.sft)} baselines for {len(args.evaluate)} compared artifacts; give one, or one each")
     baselines = args.sft * len(args.evaluate) if len(args.sft) == 1 else args.sft
-    pooled = []
+    pooled, per_artifact = [], []
     for ev, base in zip(args.evaluate, baselines):
         sft = results(base, args.baseline_policy)
         if not sft:
@@ -55,6 +57,7 @@ def main() -> None:
             print(f"{ev}: no episode shares an initial state with {base} (another evaluate seed or episode count?)")
             continue
         pooled += pairs
+        per_artifact.append(pairs)
         print(f"{ev.name[:12]}: {len(pairs)} paired episodes")
         for (split,), res in by_split(pairs).items():
             print(f"  {split:5s} {fmt_difference(res)}")
@@ -64,6 +67,10 @@ def main() -> None:
         print("pooled:")
         for (split,), res in by_split(pooled).items():
             print(f"  {split:5s} {fmt_difference(res)}")
+        print("across seeds (each compared artifact one seed; Student-t over them):")
+        for split in sorted({r["split"] for r, _ in pooled}):
+            diffs = [res[(split,)]["diff"] for res in (by_split(p) for p in per_artifact) if (split,) in res]
+            print(f"  {split:5s} {fmt_across_seeds(across_seeds(diffs))}")
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ from stages.evaluate.report import html_table, image_section, markdown_table, su
 from stages.evaluate.writeup import METHODS
 from stages.sweep_report.figures import rollout_strips, success_vs_time, training_curves
 from stages.sweep_report.gather import PointRun, gather
-from stages.sweep_report.paired import by_split, fmt_difference, pair_up
+from stages.sweep_report.paired import across_seeds, by_split, fmt_across_seeds, fmt_difference, pair_up
 
 ORDER = ["sft", "rule", "rule_dense", "wm", "embedding", "proxy"]
 LABELS = {"sft": "Supervised finetune (SFT)", **METHODS}
@@ -88,9 +88,15 @@ def _paired_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
         for seed in seeds + (["pooled"] if len(seeds) > 1 else []):
             res = by_split(paired[method] if seed == "pooled" else per_seed[(method, seed)])
             body.append([LABELS[method], seed] + [fmt_difference(res[(s,)]) if (s,) in res else "-" for s in splits])
+        if len(seeds) > 1:
+            diffs = {s: [r[(s,)]["diff"] for r in (by_split(per_seed[(method, seed)]) for seed in seeds) if (s,) in r]
+                     for s in splits}
+            body.append([LABELS[method], "across seeds"] + [fmt_across_seeds(across_seeds(diffs[s])) for s in splits])
     note = ("Success of the PPO policy minus success of the SFT policy it started from, episode by episode on the "
             "same initial states (tasks pooled): mean [95% interval of the paired differences]; 'better' / 'worse' "
-            "count the states only PPO / only SFT solved. An interval above 0 is an improvement on SFT.")
+            "count the states only PPO / only SFT solved. An interval above 0 is an improvement on SFT by these "
+            "policies. 'across seeds': the mean of the per-seed differences with a 95% Student-t interval over "
+            "the seeds, i.e. what another seed of the method would give; with few seeds it is much wider.")
     return _section("PPO minus SFT, paired on the same initial states", note, header, body)
 
 

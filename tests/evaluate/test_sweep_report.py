@@ -144,7 +144,40 @@ def test_the_paired_section_reports_ppo_minus_its_own_sft(tmp_path):
     md = report(points, out).read_text()
     section = md.split("## PPO minus SFT, paired on the same initial states")[1].split("## ")[0]
     rows = [line for line in section.splitlines() if line.startswith("| PPO in ManiSkill")]
-    assert len(rows) == 3  # seed 0, seed 1, pooled
+    assert len(rows) == 4  # seed 0, seed 1, pooled, across seeds
     assert "+1.00 [+1.00, +1.00] (n=4, 4 better / 0 worse)" in rows[0]  # every state: PPO solved, SFT did not
     assert "+0.00 [+0.00, +0.00] (n=4, 0 better / 0 worse)" in rows[1]
     assert "+0.50" in rows[2] and "n=8, 4 better / 0 worse" in rows[2]
+    # seeds +1.00 and +0.00: mean 0.5, sd 0.707, t(1) 12.71 -> half-width 6.35, clipped to [-1, 1]
+    assert "across seeds" in rows[3] and "+0.50 [-1.00, +1.00] (2 seeds, sd 0.71)" in rows[3]
+
+
+def test_across_seeds_is_a_student_t_interval_over_the_seeds():
+    from stages.sweep_report.paired import across_seeds, fmt_across_seeds
+
+    res = across_seeds([0.1, 0.2, 0.3])  # mean 0.2, sd 0.1, t(2) = 4.303 -> half-width 0.248
+    assert abs(res["diff"] - 0.2) < 1e-9 and abs(res["sd"] - 0.1) < 1e-9 and res["k"] == 3
+    assert abs(res["lo"] - (0.2 - 0.2484)) < 1e-3 and abs(res["hi"] - (0.2 + 0.2484)) < 1e-3
+    assert fmt_across_seeds(res) == "+0.20 [-0.05, +0.45] (3 seeds, sd 0.10)"
+    assert fmt_across_seeds(across_seeds([0.4])) == "-" and across_seeds([])["k"] == 0
+
+
+def test_paired_success_script_prints_pooled_and_across_seed_intervals(tmp_path):
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[2]
+
+    def write(name, policy, wins):
+        rows = [{"policy": policy, "task": "push", "split": "ind", "scene_id": "a", "seed": i, "success": i in wins}
+                for i in range(4)]
+        (tmp_path / name).write_text("".join(json.dumps(r) + "\n" for r in rows))
+        return str(tmp_path / name)
+
+    sft = [write(f"sft{s}.jsonl", "sft", set()) for s in (0, 1)]
+    ppo = [write("ppo0.jsonl", "ppo", {0, 1, 2, 3}), write("ppo1.jsonl", "ppo", set())]
+    out = subprocess.run([sys.executable, str(repo / "scripts" / "paired_success.py"), "--sft", *sft, "--", *ppo],
+                         capture_output=True, text=True, check=True).stdout
+    pooled = out.split("pooled:")[1]
+    assert "ind   +0.50" in pooled and "(n=8, 4 better / 0 worse)" in pooled
+    assert "+0.50 [-1.00, +1.00] (2 seeds, sd 0.71)" in out.split("across seeds")[1]
