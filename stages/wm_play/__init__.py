@@ -34,6 +34,10 @@ Outputs:
 Key includes:
     this config and the keys of collect, tokenize, train_wm and sft.
 
+Checkpoint:
+    the play, once finished (``ctx.checkpoints()``, pipeline.checkpoints): a run killed during the
+    fine-tune resumes from it instead of playing again.
+
 Toy profile:
     two play episodes of at most 15 steps and three fine-tuning steps: the real path, tiny.
 """
@@ -90,7 +94,7 @@ def _play_and_finetune(ctx, cfg: Config) -> dict:
     from stages.tokenize.tokenizer import load_tokenizer
     from stages.train_wm.data import load_episodes
     from stages.train_wm.rollout import CHECKPOINTS, TEXT_EMBEDDINGS, load_world_model, save_world_model
-    from stages.wm_play.play import PLAY_SEED, finetune_on_play, play_episodes
+    from stages.wm_play.play import PLAY_SEED, finetune_on_play, load_play, play_episodes, save_play
 
     wm_dir = ctx.input("train_wm")
     wm = load_world_model(wm_dir, kind="action", device=ctx.device)
@@ -101,20 +105,30 @@ def _play_and_finetune(ctx, cfg: Config) -> dict:
     split = json.loads((wm_dir / "split.json").read_text())
     envs = training_environments(list_environments(ctx.input("collect")), split["train"], list(sft_info["tasks"]))
     picked = pick_environments(envs, cfg.episodes)
-    obs_fn = ObservationFn(load_tokenizer(ctx.input("tokenize"), ctx.device),
-                           json.loads((wm_dir / TEXT_EMBEDDINGS).read_text()))
-    sim, specs = sim_over(ctx.input("collect"), obs_fn, picked, max_steps=cfg.max_episode_steps,
-                          frame_skip=wm.spec.frame_skip, seed=cfg.seed)
-    seeds = [PLAY_SEED + 1000 * cfg.seed + i for i in range(len(specs))]
-    policy = load_policy(ctx.input("sft") / POLICY_FILE, ctx.device)
-    policy.set_training_mode(False)
-    t0 = time.perf_counter()
-    try:
-        with ctx.progress(len(specs), "wm_play: SFT policy plays in ManiSkill", unit="ep") as bar:
-            play = play_episodes(policy, sim, specs, seeds, cfg.max_episode_steps, bar)
-    finally:
-        sim.close()
-    t_play = time.perf_counter() - t0
+    seeds = [PLAY_SEED + 1000 * cfg.seed + i for i in range(len(picked))]
+    checkpoints = ctx.checkpoints()  # the play is kept if the run is killed during the fine-tune
+    saved = checkpoints.load("play")
+    if saved is not None:
+        play = load_play(saved)
+        t_play = json.loads((saved / "seconds.json").read_text())
+        ctx.log.info("wm_play: the play (%d episodes, %.0f s) resumed from an earlier run's checkpoint", len(play), t_play)
+    else:
+        obs_fn = ObservationFn(load_tokenizer(ctx.input("tokenize"), ctx.device),
+                               json.loads((wm_dir / TEXT_EMBEDDINGS).read_text()))
+        sim, specs = sim_over(ctx.input("collect"), obs_fn, picked, max_steps=cfg.max_episode_steps,
+                              frame_skip=wm.spec.frame_skip, seed=cfg.seed)
+        policy = load_policy(ctx.input("sft") / POLICY_FILE, ctx.device)
+        policy.set_training_mode(False)
+        t0 = time.perf_counter()
+        try:
+            with ctx.progress(len(specs), "wm_play: SFT policy plays in ManiSkill", unit="ep") as bar:
+                play = play_episodes(policy, sim, specs, seeds, cfg.max_episode_steps, bar)
+        finally:
+            sim.close()
+        t_play = time.perf_counter() - t0
+        with checkpoints.save("play") as d:
+            save_play(play, d)
+            (d / "seconds.json").write_text(json.dumps(t_play))
     rows = [{"env_id": e.env_id, "seed": s, "policy_steps": int(p.length), "success": bool(p.done[-1] > 0)}
             for e, s, p in zip(picked, seeds, play)]
     (ctx.out / PLAY_JSON).write_text(json.dumps(rows, indent=1) + "\n")

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import copy
 import json
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -36,6 +37,27 @@ def play_episodes(policy, sim, specs: list, seeds: list[int], max_steps: int, pr
                            np.stack(proprio).astype(np.float32), "play"))
         if progress is not None:
             progress.update(1)
+    return out
+
+
+def save_play(play: list, directory: Path) -> None:
+    """The recorded play (``play_episodes``' output) as ``episodes.json`` + one ``.npz`` per episode."""
+    meta = []
+    for i, e in enumerate(play):
+        np.savez(directory / f"{i:05d}.npz", tokens=e.tokens, actions=e.actions, done=e.done, proprio=e.proprio)
+        meta.append({"episode_id": e.episode_id, "instruction": e.instruction, "split": e.split, "kind": e.kind})
+    (directory / "episodes.json").write_text(json.dumps(meta, indent=1) + "\n")
+
+
+def load_play(directory: Path) -> list:
+    """The play ``save_play`` wrote, in order."""
+    from stages.train_wm.data import Episode
+
+    out = []
+    for i, m in enumerate(json.loads((directory / "episodes.json").read_text())):
+        with np.load(directory / f"{i:05d}.npz") as z:
+            out.append(Episode(m["episode_id"], m["instruction"], m["split"], z["tokens"], z["actions"], z["done"],
+                               z["proprio"], m["kind"]))
     return out
 
 

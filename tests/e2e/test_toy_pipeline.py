@@ -302,6 +302,43 @@ def test_the_world_model_is_fine_tuned_on_the_sft_policys_play(store):
     assert rl_inputs["wm_play"] == play.name  # PPO trained in it
 
 
+def test_wm_play_killed_during_its_fine_tune_resumes_from_its_play_and_matches_a_fresh_run(store):
+    """The play is a checkpoint (pipeline.checkpoints): a run killed in the fine-tune plays no more on
+    its rerun, and the artifact equals one made from scratch (``--force``) at the same key."""
+    import os
+    import signal
+    import time
+
+    args = ["run", "--profile", "toy", "--until", "wm_play", "--set", "wm_play.steps=400", "--store", str(store)]
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", *args], cwd=REPO, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 600
+    while not list((store / "partial" / "wm_play").glob("*/play/.checkpoint.json")):
+        assert proc.poll() is None, "wm_play ended before it was killed (raise its steps)"
+        assert time.time() < deadline
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    status = cli(store, "status", "--profile", "toy", "--until", "wm_play", "--set", "wm_play.steps=400").stdout
+    assert "resumes from checkpoints: play" in status
+    resumed = cli(store, *args[:-2])
+    play = shown_with(store, "wm_play", "--set", "wm_play.steps=400")
+    log = (play / "log.txt").read_text()
+    assert "resumed from an earlier run's checkpoint" in log and "plays in ManiSkill" not in resumed.stderr
+    assert not list((store / "partial" / "wm_play").glob(f"{play.name}*"))  # dropped at commit
+    digests = json.loads((play / "manifest.json").read_text())["files"]
+    cli(store, *args[:-2], "--force", "wm_play")
+    fresh = json.loads((play / "manifest.json").read_text())["files"]
+    assert "resumed" not in (play / "log.txt").read_text()
+    for f in ("action_wm.pt", "play.json"):
+        assert digests[f]["blake3"] == fresh[f]["blake3"], f
+
+
+def shown_with(store: Path, stage: str, *sets: str) -> Path:
+    """The artifact of ``stage`` at the toy profile's key under ``sets`` (``pipeline show``)."""
+    return Path(cli(store, "show", stage, "--profile", "toy", *sets).stdout.splitlines()[1].removeprefix("path: "))
+
+
 def test_without_play_rl_trains_in_train_wms_model(store):
     acts = actions(cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "wm_play.episodes=0"))
     assert acts[("wm_play", "ran")] == 1 and acts[("rl", "ran")] == 1 and acts[("sft", "cached")] == 1
