@@ -236,8 +236,8 @@ class Project:
         node.status = "run"
         self._judge_missing(node, look)
         resumable = Checkpoints(self.store.partial(node.stage, node.key)).names()
-        if resumable:
-            node.reasons.append(f"resumes from checkpoints: {', '.join(resumable)}")
+        if resumable:  # --force drops them before the stage starts (pipeline.execute)
+            node.reasons.append(f"{'drops' if force else 'resumes from'} checkpoints: {', '.join(resumable)}")
 
     def _judge_missing(self, node: Node, look) -> None:
         if look.state == "invalid":

@@ -89,6 +89,7 @@ def test_a_killed_stage_resumes_and_force_starts_over(ws):
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     assert "resumes from checkpoints: half" in ws.cli("status", "--until", "goals").stdout
+    assert "drops checkpoints: half" in ws.cli("run", "--until", "goals", "--force", "goals", "--dry-run").stdout
     ws.cli("run", "--until", "goals", **env)
     ws.cli("run", "--until", "goals", "--force", "goals", **env)
     assert _log(ws) == ["goals computed", "goals resumed", "goals computed"]
