@@ -26,9 +26,11 @@ Outputs:
     guard.pt            the guard's done-classifier ensemble (``guard``; with ``guard_replay_rounds``
                         the last refit's, ``stages.rl.guard_refit``)
     episodes.json       every training episode: return, length, terminated by done head or truncated,
-                        the env step it started and ended at
+                        success, the env step it started and ended at, its environment ("<task>/<scene_id>")
+                        and task
     success_by_start.json  training success in 10 spans of the start step, over the episodes no
-                        unfinished one started before (by end order the short, successful ones come first)
+                        unfinished one started before (by end order the short, successful ones come first); ``by_task``:
+                        the same in 5 spans per task
     training.png        episode return over env steps; training success by start step
     tensorboard/        episode return / length and PPO update statistics, live (``stages.common.curves``)
     reward_diagnostics.png  each module's reward along held-out successful episodes, IND and OOD

@@ -109,7 +109,7 @@ class RLInputs:
         train = set(self.split["train"])
         ids = [(e, i) for e in envs for i in e.episodes if i in train]
         if not any_frame:
-            return [Start(self.goal_index[e.env_id], e.instruction, self.tokens(i)[0], self.first_proprio(i))
+            return [Start(self.goal_index[e.env_id], e.instruction, self.tokens(i)[0], self.first_proprio(i), e.env_id)
                     for e, i in ids]
         return [s for e, i in ids for s in self._starts_before_success(e, i)]
 
@@ -122,7 +122,7 @@ class RLInputs:
             return []
         tokens = self.tokens(episode_id)  # (T'+1, h, w)
         proprio = proprio_from_state(np.asarray(ep["ee_pose"])[idx[:end]], np.asarray(ep["qpos"])[idx[:end]])  # (end, 10)
-        return [Start(self.goal_index[env.env_id], env.instruction, tokens[j], proprio[j]) for j in range(end)]
+        return [Start(self.goal_index[env.env_id], env.instruction, tokens[j], proprio[j], env.env_id) for j in range(end)]
 
     def goal_frames(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Decoded goal frames (G, 3, H, W) x 2 in [0, 1], rows as in the goals artifact."""

@@ -48,7 +48,8 @@ class TrainingLog(BaseCallback):
             terminated = info.get("terminated_by_done_head", not info.get("TimeLimit.truncated", False))
             self.episodes.append({"t": int(self.num_timesteps), "start": int(self._start[i]), "wall": time.perf_counter() - self._t0,
                                   "return": float(self._ret[i]), "length": int(self._len[i]),
-                                  "terminated": bool(terminated), "success": bool(info.get("success", terminated))})
+                                  "terminated": bool(terminated), "success": bool(info.get("success", terminated)),
+                                  "env": info.get("env", ""), "task": task_of(info.get("env", ""))})
             if self.curves is not None:
                 self.curves.scalar("episode/return", self._ret[i], self.num_timesteps)
                 self.curves.scalar("episode/length", self._len[i], self.num_timesteps)
@@ -75,7 +76,8 @@ class TrainingLog(BaseCallback):
         (self.out / "snapshots" / "index.json").write_text(json.dumps(self.snapshots, indent=1) + "\n")
         (self.out / "episodes.json").write_text(json.dumps(self.episodes) + "\n")
         (self.out / "success_by_start.json").write_text(json.dumps(
-            {"unfinished_from": self.unfinished_from(), "bins": success_by_start(self.episodes, self.unfinished_from())},
+            {"unfinished_from": self.unfinished_from(), "bins": success_by_start(self.episodes, self.unfinished_from()),
+             "by_task": success_by_task(self.episodes, self.unfinished_from())},
             indent=1) + "\n")
 
     def summary(self, window: int = 50) -> dict:
@@ -90,6 +92,11 @@ class TrainingLog(BaseCallback):
                 "return_first": float(np.mean([e["return"] for e in first])),
                 "return_last": float(np.mean([e["return"] for e in last])),
                 "length_last": float(np.mean([e["length"] for e in last]))}
+
+
+def task_of(env: str) -> str:
+    """The task of an environment key "<task>/<scene_id>" ("" for an unknown environment)."""
+    return env.split("/", 1)[0] if env else ""
 
 
 def uncensored(episodes: list[dict], unfinished_from: int) -> list[dict]:
@@ -112,6 +119,13 @@ def success_by_start(episodes: list[dict], unfinished_from: int, bins: int = 10)
             out.append({"start_from": int(lo), "start_to": int(hi), "episodes": len(s), "success": rate,
                         "interval": [low, high]})
     return out
+
+
+def success_by_task(episodes: list[dict], unfinished_from: int, bins: int = 5) -> dict[str, list[dict]]:
+    """``success_by_start`` per task (fewer spans: a task has a quarter of the episodes); episodes with no
+    task recorded are left out."""
+    tasks = sorted({e.get("task", "") for e in episodes} - {""})
+    return {t: success_by_start([e for e in episodes if e.get("task") == t], unfinished_from, bins) for t in tasks}
 
 
 def plot_training(episodes: list[dict], path: Path, title: str, unfinished_from: int | None = None) -> None:
@@ -142,7 +156,12 @@ def plot_training(episodes: list[dict], path: Path, title: str, unfinished_from:
             rate = np.array([x["success"] for x in b])
             lo, hi = np.array([x["interval"] for x in b]).T  # (bins,) each
             ax.fill_between(mid, lo, hi, alpha=0.2)
-            ax.plot(mid, rate, "o-", ms=3)
+            ax.plot(mid, rate, "o-", ms=3, color="k", label="all")
+            for task, tb in success_by_task(episodes, unfinished_from).items():
+                if tb:
+                    ax.plot([(x["start_from"] + x["start_to"]) / 2 for x in tb], [x["success"] for x in tb], ".-", lw=0.8,
+                            ms=3, alpha=0.8, label=task)
+            ax.legend(fontsize=6, loc="best", ncol=2)
         ax.set_ylim(0, 1)
         ax.set_xlabel("env step the episode started at")
         ax.set_ylabel("training success (95% Wilson)")

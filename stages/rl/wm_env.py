@@ -36,6 +36,7 @@ class Start:
     instruction: str
     tokens: np.ndarray  # (h, w) the initial frame
     proprio: np.ndarray  # (10,) the robot's proprioception in it
+    env: str = ""  # "<task>/<scene_id>", as the simulator env's info names it ("" where unknown)
 
 
 def check_actions(actions: np.ndarray, n: int) -> np.ndarray:
@@ -152,6 +153,7 @@ class WorldModelVecEnv(VecEnv):
         dones = terminated | truncated
         obs = self._obs(out.tokens)
         infos: list[dict[str, Any]] = [{"done_prob": float(done_prob[i]), "env_id": self.current[i].env_index,
+                                        "env": self.current[i].env,
                                         "clipped_actions": self.roll.last_clip_count} for i in range(self.num_envs)]
         if disagreement is not None:
             for i in range(self.num_envs):

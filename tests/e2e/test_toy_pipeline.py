@@ -233,6 +233,7 @@ def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horiz
     episodes = json.loads((rl / "episodes.json").read_text())
     assert episodes and max(e["length"] for e in episodes) <= 3  # the toy profile's horizon is 15
     assert all(e["length"] == 3 for e in episodes if not e["terminated"])
+    assert all(e["task"] and e["env"].startswith(e["task"] + "/") for e in episodes)  # where each episode ran
 
 
 def test_the_calibration_gate_trains_ppo_on_the_tasks_it_keeps(store):

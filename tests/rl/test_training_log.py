@@ -4,7 +4,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from stages.rl.training import TrainingLog, success_by_start, uncensored
+from stages.rl.training import TrainingLog, success_by_start, success_by_task, uncensored
+
+
+TASKS = ("push", "pick_place")
 
 
 def drive(tmp_path, n_envs=16, steps=400, seed=0):
@@ -22,8 +25,8 @@ def drive(tmp_path, n_envs=16, steps=400, seed=0):
         model.num_timesteps += n_envs
         state["left"] -= 1
         dones = state["left"] == 0
-        infos = [{"success": bool(state["success"][i]), "terminated_by_done_head": bool(state["success"][i])}
-                 for i in range(n_envs)]
+        infos = [{"success": bool(state["success"][i]), "terminated_by_done_head": bool(state["success"][i]),
+                  "env": f"{TASKS[i % 2]}/scene_{i}"} for i in range(n_envs)]
         log.update_locals({"dones": dones, "infos": infos, "rewards": np.zeros(n_envs)})
         log.on_step()
         for i in np.nonzero(dones)[0]:
@@ -56,3 +59,15 @@ def test_the_summary_and_the_written_curve_use_start_bins(tmp_path):
     import json
     written = json.loads((tmp_path / "success_by_start.json").read_text())
     assert written["unfinished_from"] == log.unfinished_from() and written["bins"]
+    assert set(written["by_task"]) == set(TASKS)
+
+
+def test_every_episode_names_its_environment_and_task_and_each_task_gets_a_curve(tmp_path):
+    log = drive(tmp_path)
+    assert all(e["task"] == e["env"].split("/")[0] and e["task"] in TASKS for e in log.episodes)
+    by_task = success_by_task(log.episodes, log.unfinished_from())
+    kept = uncensored(log.episodes, log.unfinished_from())
+    # the per-task spans partition the uncensored episodes of each task
+    for task in TASKS:
+        assert sum(b["episodes"] for b in by_task[task]) == sum(e["task"] == task for e in kept)
+    assert success_by_task([{**e, "task": ""} for e in log.episodes], log.unfinished_from()) == {}

@@ -36,8 +36,10 @@ def test_vec_env_steps_truncates_and_auto_resets(parts):
     assert obs["codes"].shape == (3, 6, 8, 8) and obs["instruction"].shape == (3, 384)
     assert set(np.unique(obs["codes"])) <= {-1.0, 1.0}
     for t in range(3):
+        ran = [s.env for s in env.current]  # the environments these steps run in (a finished one is replaced after)
         obs, rew, dones, infos = env.step(np.zeros((3, 7), np.float32))
         assert rew.shape == (3,) and np.isfinite(rew).all()
+        assert [i["env"] for i in infos] == ran and set(ran) <= {"push/scene_0", "pull/scene_1"}
     assert dones.all() and all(i["TimeLimit.truncated"] for i in infos)
     assert all("terminal_observation" in i for i in infos)
     assert (env.t == 0).all() and env.stats["truncated"] == 3

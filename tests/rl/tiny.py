@@ -52,7 +52,8 @@ def frames(n: int, size: int = 64, seed: int = 0) -> tuple[np.ndarray, np.ndarra
 def starts_for(tok, n: int = 3) -> list[Start]:
     third, wrist = frames(n)
     tokens = tok.encode(third, wrist).numpy()
-    return [Start(i % 2, ["push the cube", "pull the cube"][i % 2], tokens[i], REST_PROPRIO) for i in range(n)]
+    return [Start(i % 2, ["push the cube", "pull the cube"][i % 2], tokens[i], REST_PROPRIO, ["push/scene_0", "pull/scene_1"][i % 2])
+            for i in range(n)]
 
 
 def obs_fn(tok) -> ObservationFn:
