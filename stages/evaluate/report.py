@@ -87,7 +87,12 @@ def strip_figure(rows: list[tuple[str, np.ndarray]], path: Path, title: str) -> 
     import matplotlib.pyplot as plt
 
     t = max(len(r[1]) for r in rows)
-    fig, axes = plt.subplots(len(rows), t, figsize=(1.1 * t, 1.25 * len(rows)), squeeze=False)
+    h, w = rows[0][1].shape[1:3]
+    cell, gap = 1.0, 0.16  # inches: a frame's width; the label line above each row
+    n = len(rows)
+    fig_w, fig_h = cell * t, n * (cell * h / w + gap) + 0.35  # frames touch side by side; 0.35 for the title
+    fig, axes = plt.subplots(n, t, figsize=(fig_w, fig_h), squeeze=False,
+                             gridspec_kw={"wspace": 0.02, "hspace": gap / (cell * h / w)})
     for i, (label, frames) in enumerate(rows):
         for j in range(t):
             ax = axes[i][j]
@@ -95,8 +100,8 @@ def strip_figure(rows: list[tuple[str, np.ndarray]], path: Path, title: str) -> 
             if j < len(frames):
                 ax.imshow(frames[j])
         axes[i][0].set_title(label, fontsize=7, loc="left")
-    fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    fig.suptitle(title, fontsize=9, y=1 - 0.08 / fig_h)
+    fig.subplots_adjust(left=0.005, right=0.995, bottom=0.005, top=1 - (0.35 + gap) / fig_h)
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
