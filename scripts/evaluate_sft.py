@@ -8,7 +8,11 @@
 initial states; ``scripts/paired_success.py`` then pairs it with the SFT episodes.
 
 Prints success per (task, split) and pooled, with Wilson 95% intervals, and writes the per-episode
-results next to nothing else (``--out results.jsonl`` to keep them). ``--strips DIR`` also saves,
+results next to nothing else (``--out results.jsonl`` to keep them). With ``--out F`` every finished
+job's episodes are appended to ``F.partial`` at once, and the same command after a kill runs only the
+jobs that file lacks (it says how many it kept); ``F`` is written when every job is done and the
+partial file is removed. A worker reuses its simulator across jobs, so a resumed run's jobs meet the
+simulator in another order than an uninterrupted run's would. ``--strips DIR`` also saves,
 for the first episode of each (task, split), a strip of 8 third-view frames from start to end
 (``DIR/<split>_<task>_<success|fail>.png``): look at what the policy does before believing a rate.
 """
@@ -17,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
 import sys
 import tempfile
 import time
@@ -66,17 +71,30 @@ def main() -> None:
             first.setdefault((job.task, job.split), job)
         for job in first.values():
             job.record = [job.seeds[0]]
+    partial = args.out.with_name(args.out.name + ".partial") if args.out is not None else None
+    kept = read_partial(partial, jobs) if partial is not None else []
+    todo = pending(jobs, kept)
+    if kept:
+        print(f"resuming: {len(jobs) - len(todo)} of {len(jobs)} jobs ({len(kept)} episodes) kept from {partial}; "
+              f"running {len(todo)}" + (" (frame strips only for those)" if args.strips is not None else ""))
     t0 = time.perf_counter()
+    results = list(kept)
     with mp.get_context("spawn").Pool(args.jobs) as pool:
-        results = [r for rs in pool.imap_unordered(run_job, jobs) for r in rs]
+        for rs in pool.imap_unordered(run_job, todo):
+            results.extend(rs)
+            if partial is not None:
+                append_rows(partial, [_row(r) for r in rs])
     seconds = time.perf_counter() - t0
     if snapshot is not None:
         snapshot.cleanup()
     if args.strips is not None:
         _save_strips(results, args.strips)
-    results = [{k: v for k, v in r.items() if k != "frames"} for r in results]
+    results = [_row(r) for r in results]
     if args.out is not None:
-        args.out.write_text("".join(json.dumps(r) + "\n" for r in results))
+        tmp = args.out.with_name(args.out.name + ".tmp")
+        tmp.write_text("".join(json.dumps(r) + "\n" for r in results))
+        tmp.replace(args.out)
+        partial.unlink(missing_ok=True)
     print(f"{len(results)} episodes in {seconds:.0f} s ({args.jobs} workers)")
     for split in cfg.splits:
         cells = []
@@ -84,6 +102,54 @@ def main() -> None:
             rs = [r for r in results if r["split"] == split and (task == "all" or r["task"] == task)]
             cells.append(f"{task} {fmt_rate(sum(r['success'] for r in rs), len(rs))}")
         print(f"{split}: " + " | ".join(cells))
+
+
+def _row(result: dict) -> dict:
+    """A result without its frames: what the jsonl files keep."""
+    return {k: v for k, v in result.items() if k != "frames"}
+
+
+def _episode(row: dict) -> tuple:
+    return row["policy"], row["task"], row["scene_id"], row["split"], int(row["seed"])
+
+
+def _job_episodes(job) -> set[tuple]:
+    return {(job.policy, job.task, job.scene["scene_id"], job.split, int(s)) for s in job.seeds}
+
+
+def read_partial(path: Path, jobs: list) -> list[dict]:
+    """The rows of ``path`` that belong to a job whose every episode is there (a kill can tear the last
+    line or leave a job half written); the file is rewritten with those rows only, so appends follow a
+    whole line."""
+    if not path.exists():
+        return []
+    rows = []
+    for line in path.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue  # a torn line
+    have = {_episode(r) for r in rows}
+    complete = set().union(*(_job_episodes(j) for j in jobs if _job_episodes(j) <= have)) if jobs else set()
+    kept = [r for r in rows if _episode(r) in complete]
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text("".join(json.dumps(r) + "\n" for r in kept))
+    tmp.replace(path)
+    return kept
+
+
+def pending(jobs: list, kept: list[dict]) -> list:
+    """The jobs with an episode not in ``kept``."""
+    have = {_episode(r) for r in kept}
+    return [j for j in jobs if not _job_episodes(j) <= have]
+
+
+def append_rows(path: Path, rows: list[dict]) -> None:
+    """Append one job's rows in one write, on disk before the next job's."""
+    with open(path, "a") as f:
+        f.write("".join(json.dumps(r) + "\n" for r in rows))
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def _save_strips(results: list[dict], out: Path) -> None:
