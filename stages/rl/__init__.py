@@ -37,6 +37,9 @@ Outputs:
     rl.json             the facts this stage fixes, read by evaluate and the sweep report through
                         ``read_rl_facts``: the reward module, whether success pays the steps left,
                         what ``rule`` pays (``rule_terms``) and the method label key (``method_of``)
+    acceptance.json     with ``accept_episodes``: the acceptance test's SFT and PPO success per task on the
+                        validation states, their paired difference and which policy ``policy.zip`` holds
+                        (``stages.rl.acceptance``); its episodes in ``acceptance_episodes.jsonl``
     calibration.json    with ``calibration_ratio``: per task, the SFT policy's imagined and real success
                         rates and whether PPO trained on it (``stages.rl.calibration``)
     imagined.json       per split, the final policy's imagined episodes replayed in ManiSkill: where
@@ -156,6 +159,13 @@ class Config(BaseModel):
         "advantage", description="advantage: -log pi * max(R - V, 0) plus the critic's term (SIL); success: every step "
         "of a successful episode weighs 1 (behaviour cloning on the policy's own successes)")
     self_imitation_capacity: int = Field(10000, ge=1, description="steps of successful episodes kept for self-imitation")
+    accept_episodes: int = Field(0, ge=0, description="0 = off; n > 0: after PPO the SFT and the PPO policy each run n "
+                                 "deterministic episodes per task in ManiSkill from the same IND validation states, and "
+                                 "PPO's policy is kept only if its success beats SFT's by more than accept_margin, else "
+                                 "policy.zip holds SFT's weights (stages/rl/acceptance.py; simulator episodes, also for "
+                                 "world-model rewards)")
+    accept_margin: float = Field(0.0, ge=-1, le=1, description="the paired success difference (PPO minus SFT) PPO must "
+                                 "exceed in the acceptance test; 1 = never keep PPO")
     snapshots: int = Field(4, ge=0, description="policy checkpoints spread over training (success vs time)")
     precision_envs: int = Field(48, ge=0, description="environments per split (IND, OOD) whose imagined episodes of "
                                 "the final policy are replayed in ManiSkill (imagined-success precision; 0 = skip; "

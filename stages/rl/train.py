@@ -90,6 +90,7 @@ def train(ctx, cfg, inp) -> dict:
                                         coef=cfg.demo_bc_coef, seed=cfg.seed)
         metrics["demo_bc/pairs"] = len(model.demo_bc)
     before = flat_params(model.policy)
+    initial = {k: v.detach().clone() for k, v in model.policy.state_dict().items()}  # SFT's weights, for the acceptance test
 
     t0 = time.perf_counter()
     with ctx.progress(cfg.total_timesteps, f"rl: PPO ({cfg.reward})", unit="step") as bar, Curves(ctx.out) as curves:
@@ -128,10 +129,32 @@ def train(ctx, cfg, inp) -> dict:
         metrics["ppo/clipped_action_entries"] = int(raw_env.roll.clip_count)
         metrics["ppo/wm_dtype"] = raw_env.dtype  # what "auto" resolved to on this machine
     ctx.log.info("rl: %s", {k: v for k, v in metrics.items() if k.startswith("ppo/")})
+    if cfg.accept_episodes:
+        metrics.update(_accept(ctx, cfg, inp, model, initial))
     if cfg.precision_envs:
         metrics.update(_imagined_precision(ctx, cfg, inp, model.policy, getattr(raw_env, "guard", None)))
     metrics["stage_seconds"] = time.perf_counter() - t_stage
     return metrics
+
+
+def _accept(ctx, cfg, inp, model, initial: dict) -> dict:
+    """The acceptance test (stages.rl.acceptance); when SFT wins, policy.zip is re-saved with SFT's weights."""
+    from stages.rl.acceptance import acceptance_test
+
+    result, rows = acceptance_test(ctx, cfg, inp, ctx.out)
+    (ctx.out / "acceptance.json").write_text(json.dumps(result, indent=1) + "\n")
+    (ctx.out / "acceptance_episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    d = result["difference"]
+    ctx.log.info("rl: acceptance test on %d IND validation states: SFT %.3f, PPO %.3f, PPO minus SFT %+.3f [%+.3f, %+.3f] "
+                 "(margin %+.2f): keeping %s", d["n"], result["sft_success"], result["ppo_success"], d["diff"], d["lo"],
+                 d["hi"], cfg.accept_margin, "PPO's policy" if result["kept"] == "ppo" else "the SFT policy")
+    if result["kept"] == "sft":
+        model.policy.load_state_dict(initial)
+        model.save(ctx.out / "policy.zip")
+    return {"accept/episodes": result["episodes"], "accept/seconds": result["seconds"],
+            "accept/sft_success": result["sft_success"], "accept/ppo_success": result["ppo_success"],
+            "accept/difference": d["diff"], "accept/difference_lo": d["lo"], "accept/difference_hi": d["hi"],
+            "accept/kept_ppo": result["kept"] == "ppo"}
 
 
 def _calibration_gate(ctx, cfg, inp, envs: list, metrics: dict) -> list:

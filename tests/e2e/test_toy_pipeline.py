@@ -10,6 +10,7 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
@@ -197,6 +198,32 @@ def test_the_demonstration_anchor_trains_on_sfts_own_training_pairs(store):
     sft = json.loads((shown(store, "sft") / "metrics.json").read_text())
     assert m["demo_bc/pairs"] == sft["pairs/train"] > 0  # the pairs SFT trained on, read with its recipe
     assert m["demo_bc/loss_last"] >= 0.0  # it ran after the toy profile's one post-warm-up update
+
+
+def test_an_acceptance_test_that_ppo_cannot_pass_ships_the_sft_policy(store):
+    cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.accept_episodes=1", "--set", "rl.accept_margin=1",
+        "--set", "rl.precision_envs=0")
+    rl = artifact(store, "rl")
+    table = json.loads((rl / "acceptance.json").read_text())
+    tasks = json.loads((shown(store, "sft") / "policy.json").read_text())["tasks"]
+    episodes = [json.loads(x) for x in (rl / "acceptance_episodes.jsonl").read_text().splitlines()]
+    assert table["kept"] == "sft" and table["episodes"] == len(episodes) == 2 * len(tasks)  # one state per task, both policies
+    assert {(e["task"], e["seed"]) for e in episodes if e["policy"] == "sft"} == \
+           {(e["task"], e["seed"]) for e in episodes if e["policy"] == "ppo"}  # paired on the same states
+    m = json.loads((rl / "metrics.json").read_text())
+    assert m["accept/kept_ppo"] is False and m["accept/episodes"] == len(episodes)
+    import torch
+
+    from stages.sft.policy import POLICY_FILE, load_policy
+
+    shipped, sft = load_policy(rl / "policy.zip"), load_policy(shown(store, "sft") / POLICY_FILE)
+    shipped.set_training_mode(False), sft.set_training_mode(False)  # SFT's dropout off, as in evaluation
+    space = sft.observation_space
+    space.seed(0)
+    obs = [space.sample() for _ in range(8)]
+    batch = {k: torch.as_tensor(np.stack([o[k] for o in obs])) for k in obs[0]}
+    with torch.no_grad():
+        assert torch.allclose(shipped.mean_action(batch), sft.mean_action(batch), atol=1e-6)  # SFT's actions, not PPO's
 
 
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):

@@ -1,0 +1,31 @@
+"""The acceptance test's decision: paired on the same states, PPO kept only above the margin."""
+import pytest
+
+from stages.rl.acceptance import decide
+
+
+def rows(policy, outcomes, task="push"):
+    return [{"policy": policy, "task": task, "split": "ind", "scene_id": "s0", "seed": i, "success": bool(o)}
+            for i, o in enumerate(outcomes)]
+
+
+def test_ppo_is_kept_only_when_it_beats_sft_by_more_than_the_margin():
+    sft = rows("sft", [1, 0, 0, 1, 0, 0, 1, 0])  # 3 / 8
+    better = rows("ppo", [1, 1, 0, 1, 1, 0, 1, 0])  # 5 / 8: +0.25 on the same states
+    d = decide(sft, better, margin=0.0)
+    assert d["kept"] == "ppo" and d["difference"]["diff"] == pytest.approx(0.25)
+    assert d["difference"]["better"] == 2 and d["difference"]["worse"] == 0
+    assert d["sft_success"] == pytest.approx(3 / 8) and d["ppo_success"] == pytest.approx(5 / 8)
+    assert decide(sft, better, margin=0.25)["kept"] == "sft"  # must exceed, not reach
+    assert decide(sft, rows("ppo", [1, 0, 0, 1, 0, 0, 1, 0]), margin=0.0)["kept"] == "sft"  # a tie keeps SFT
+    assert decide(sft, better, margin=1.0)["kept"] == "sft"
+
+
+def test_only_shared_states_are_compared_per_task():
+    sft = rows("sft", [0, 0]) + rows("sft", [1, 1], task="pull")
+    ppo = rows("ppo", [1, 1, 1]) + rows("ppo", [1, 0], task="pull")  # push seed 2: SFT never ran it
+    d = decide(sft, ppo, margin=0.0)
+    assert d["difference"]["n"] == 4 and d["difference"]["diff"] == pytest.approx((2 - 1) / 4)
+    assert d["by_task"] == {"pull": {"episodes": 2, "sft": 1.0, "ppo": 0.5}, "push": {"episodes": 2, "sft": 0.0, "ppo": 1.0}}
+    with pytest.raises(ValueError, match="share no initial state"):
+        decide(rows("sft", [1]), rows("ppo", [1], task="pull"), margin=0.0)
