@@ -47,7 +47,8 @@ class Config(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    seed: int = Field(0, description="base of the evaluation episodes' seeds (kept far from collection seeds)")
+    seed: int = Field(0, ge=0, lt=60, description="base of the evaluation episodes' seeds (kept far from collection "
+                      "seeds); 60 and up are the rl stage's acceptance-test states (stages/rl/acceptance.py)")
     episodes: int = Field(25, ge=1, description="episodes per (policy, task, split); the same initial states for every policy")
     max_steps: int = Field(75, ge=1, description="episode horizon in policy steps of frame_skip control steps each "
                            "(planner demos take ~100-280 control steps = 25-70 policy steps at frame_skip 4)")

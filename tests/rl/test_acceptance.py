@@ -29,3 +29,14 @@ def test_only_shared_states_are_compared_per_task():
     assert d["by_task"] == {"pull": {"episodes": 2, "sft": 1.0, "ppo": 0.5}, "push": {"episodes": 2, "sft": 0.0, "ppo": 1.0}}
     with pytest.raises(ValueError, match="share no initial state"):
         decide(rows("sft", [1]), rows("ppo", [1], task="pull"), margin=0.0)
+
+
+def test_evaluation_seeds_cannot_reach_the_acceptance_tests_validation_states():
+    from pydantic import ValidationError
+
+    from stages.evaluate import Config
+    from stages.rl.acceptance import ACCEPT_SEED
+
+    Config(seed=ACCEPT_SEED - 1)
+    with pytest.raises(ValidationError):
+        Config(seed=ACCEPT_SEED)
