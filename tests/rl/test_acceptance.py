@@ -40,3 +40,12 @@ def test_evaluation_seeds_cannot_reach_the_acceptance_tests_validation_states():
     Config(seed=ACCEPT_SEED - 1)
     with pytest.raises(ValidationError):
         Config(seed=ACCEPT_SEED)
+
+
+def test_the_validation_states_lie_at_evaluate_seed_60_plus_the_rl_seed():
+    from stages.rl import Config as RlConfig
+    from stages.rl.acceptance import ACCEPT_SEED, validation_config
+
+    for seed in (0, 7):
+        ecfg = validation_config(RlConfig(seed=seed, accept_episodes=3))
+        assert (ecfg.seed, ecfg.episodes, ecfg.splits, ecfg.policies) == (ACCEPT_SEED + seed, 3, ["ind"], ["sft", "ppo"])
