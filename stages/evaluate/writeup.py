@@ -8,6 +8,7 @@ import torch
 
 from stages.evaluate.report import (SPLIT_NAMES, html_table, image_section, markdown_table, plot_success_vs_time,
                                     strip_figure, success_table, tally, write_gif, write_report)
+from stages.evaluate.shipped import acceptance_metrics, acceptance_section, read_acceptance, shipped_label
 from stages.evaluate.stats import wilson
 
 METHODS = {
@@ -37,8 +38,11 @@ def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
         base = f"success/{policy}/{task}/{split}"
         metrics.update({base: p, f"{base}_lo": lo, f"{base}_hi": hi, f"{base}_n": n})
 
+    acceptance = read_acceptance(ctx.input("rl"))  # None unless the rl stage ran its acceptance test
+    metrics.update(acceptance_metrics(acceptance))
     splits = [s for s in cfg.splits if any(k[2] == s for k in counts)]
-    rows = [(method_label(p, method), p) for p in cfg.policies]
+    rows = [(method_label(p, method) if p == "sft" else shipped_label(method_label(p, method), acceptance), p)
+            for p in cfg.policies]
     header, body = success_table(counts, rows, tasks, splits)
     table_name = "Table 1 layout: success rate in the simulator" if len(tasks) == 1 else \
         f"Table 2 layout: one multi-task policy ({', '.join(tasks)})"
@@ -47,6 +51,8 @@ def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
             f"ManiSkill's own success check. IND: the training scenes with new initial "
             f"states; OOD: held-out scenes (unseen objects, unseen object-container pairs); extra: user-added scenes.")
     sections = [(table_name, note + "\n\n" + markdown_table(header, body), f"<p>{note}</p>" + html_table(header, body))]
+    if acceptance is not None:
+        sections.append(("Acceptance test before shipping (rl.accept_episodes)", *acceptance_section(acceptance)))
 
     # Fig. 2: success vs training wall time (SFT at 0 s, then each PPO snapshot)
     snaps = json.loads((ctx.input("rl") / "snapshots" / "index.json").read_text()) \

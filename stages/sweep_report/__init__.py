@@ -136,6 +136,14 @@ def _first_last(metrics: list[dict]) -> str:
     return " / ".join(cells) if any(c != "-" for c in cells) else "-"
 
 
+def _shipped(metrics: list[dict]) -> str:
+    """'PPO (+0.03) / SFT (-0.08)': which policy each run shipped after its acceptance test (the test's
+    paired difference in brackets); '-' where no run had the test (``rl.accept_episodes`` 0)."""
+    cells = [f"{'PPO' if m['accept/kept_ppo'] else 'SFT'} ({m['accept/difference']:+.2f}, {m['accept/episodes']} sim episodes)"
+             if "accept/kept_ppo" in m else "-" for m in metrics]
+    return " / ".join(cells) if any(c != "-" for c in cells) else "-"
+
+
 def _cost_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
     rows = []
     for m in ORDER[1:]:
@@ -147,7 +155,7 @@ def _cost_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
                      _joined([r.rl_metrics.get("ppo/seconds", np.nan) for r in mine]),
                      _joined([r.rl_metrics.get("ppo/env_steps_per_second", np.nan) for r in mine], "{:.1f}"),
                      _joined([r.rl_metrics.get("ppo/terminated_fraction", np.nan) for r in mine], "{:.3f}"),
-                     _first_last([r.rl_metrics for r in mine]),
+                     _first_last([r.rl_metrics for r in mine]), _shipped([r.rl_metrics for r in mine]),
                      _joined([r.seconds.get("evaluate", np.nan) for r in mine])])
     if not rows:
         return None
@@ -158,9 +166,12 @@ def _cost_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
             "the same cores, which inflates these times. Terminated = fraction of PPO training episodes that the "
             "reward's success signal ended (done head or simulator success). Training success, first -> last fifth: "
             "the same success signal in the first and last fifth of PPO's episodes by start step (inside the "
-            "world model the done head's verdict, not the simulator's).")
+            "world model the done head's verdict, not the simulator's). Shipped: with the rl stage's acceptance "
+            "test, whether the run shipped PPO's policy or SFT's weights (then its PPO rows above are SFT's policy), "
+            "the test's PPO-minus-SFT difference and the simulator episodes it spent.")
     return _section("Cost per method", note, ["method", "runs", "wm_play s", "rl stage s", "PPO s", "PPO env steps/s",
-                                              "terminated", "training success, first -> last fifth", "evaluate s"], rows)
+                                              "terminated", "training success, first -> last fifth", "shipped (acceptance test)",
+                                              "evaluate s"], rows)
 
 
 def _time_curves(runs: list[PointRun]) -> dict[str, dict[str, list[tuple[float, int, int]]]]:

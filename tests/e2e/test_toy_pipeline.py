@@ -41,9 +41,9 @@ def artifact(store: Path, stage: str) -> Path:
     return arts[-1].parent
 
 
-def shown(store: Path, stage: str) -> Path:
-    """The artifact of ``stage`` at the toy profile's current key (``pipeline show``)."""
-    return Path(cli(store, "show", stage, "--profile", "toy").stdout.splitlines()[1].removeprefix("path: "))
+def shown(store: Path, stage: str, *sets: str) -> Path:
+    """The artifact of ``stage`` at the toy profile's key, under ``sets`` if given (``pipeline show``)."""
+    return Path(cli(store, "show", stage, "--profile", "toy", *sets).stdout.splitlines()[1].removeprefix("path: "))
 
 
 @pytest.fixture(scope="module")
@@ -201,9 +201,9 @@ def test_the_demonstration_anchor_trains_on_sfts_own_training_pairs(store):
 
 
 def test_an_acceptance_test_that_ppo_cannot_pass_ships_the_sft_policy(store):
-    cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.accept_episodes=1", "--set", "rl.accept_margin=1",
-        "--set", "rl.precision_envs=0")
-    rl = artifact(store, "rl")
+    sets = ["--set", "rl.accept_episodes=1", "--set", "rl.accept_margin=1", "--set", "rl.precision_envs=0"]
+    cli(store, "run", "--profile", "toy", "--until", "evaluate", *sets)
+    rl = shown(store, "rl", *sets)
     table = json.loads((rl / "acceptance.json").read_text())
     tasks = json.loads((shown(store, "sft") / "policy.json").read_text())["tasks"]
     episodes = [json.loads(x) for x in (rl / "acceptance_episodes.jsonl").read_text().splitlines()]
@@ -224,6 +224,12 @@ def test_an_acceptance_test_that_ppo_cannot_pass_ships_the_sft_policy(store):
     batch = {k: torch.as_tensor(np.stack([o[k] for o in obs])) for k in obs[0]}
     with torch.no_grad():
         assert torch.allclose(shipped.mean_action(batch), sft.mean_action(batch), atol=1e-6)  # SFT's actions, not PPO's
+    from stages.evaluate.shipped import SFT_SHIPPED
+
+    ev = shown(store, "evaluate", *sets)  # the report does not credit PPO with SFT's policy
+    assert json.loads((ev / "metrics.json").read_text())["shipped/ppo"] == 0
+    report = (ev / "report.md").read_text()
+    assert SFT_SHIPPED in report and "Acceptance test before shipping" in report
 
 
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
@@ -350,7 +356,7 @@ def test_wm_play_killed_during_its_fine_tune_resumes_from_its_play_and_matches_a
     status = cli(store, "status", "--profile", "toy", "--until", "wm_play", "--set", "wm_play.steps=400").stdout
     assert "resumes from checkpoints: play" in status
     resumed = cli(store, *args[:-2])
-    play = shown_with(store, "wm_play", "--set", "wm_play.steps=400")
+    play = shown(store, "wm_play", "--set", "wm_play.steps=400")
     log = (play / "log.txt").read_text()
     assert "resumed from an earlier run's checkpoint" in log and "plays in ManiSkill" not in resumed.stderr
     assert not list((store / "partial" / "wm_play").glob(f"{play.name}*"))  # dropped at commit
@@ -360,11 +366,6 @@ def test_wm_play_killed_during_its_fine_tune_resumes_from_its_play_and_matches_a
     assert "resumed" not in (play / "log.txt").read_text()
     for f in ("action_wm.pt", "play.json"):
         assert digests[f]["blake3"] == fresh[f]["blake3"], f
-
-
-def shown_with(store: Path, stage: str, *sets: str) -> Path:
-    """The artifact of ``stage`` at the toy profile's key under ``sets`` (``pipeline show``)."""
-    return Path(cli(store, "show", stage, "--profile", "toy", *sets).stdout.splitlines()[1].removeprefix("path: "))
 
 
 def test_without_play_rl_trains_in_train_wms_model(store):

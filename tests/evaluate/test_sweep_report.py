@@ -30,6 +30,8 @@ def _point(root: Path, reward: str, seed: int, ppo_wins: int, sft_wins: int, sna
                "diagnostics/ind/wm/spearman_progress": 0.5 + seed / 10}
     if seed == 0:  # what the rl stage writes since it bins training success by start step; seed 1 is older
         metrics.update({"ppo/success_first_fifth": 0.4, "ppo/success_last_fifth": 0.6})
+        # and, with rl.accept_episodes, its acceptance test: here PPO failed it and SFT's weights shipped
+        metrics.update({"accept/kept_ppo": False, "accept/difference": -0.08, "accept/episodes": 600})
         (rl / "success_by_start.json").write_text(json.dumps({"unfinished_from": 30, "bins": [
             {"start_from": 0, "start_to": 15, "episodes": 5, "success": 0.4, "interval": [0.1, 0.8]},
             {"start_from": 15, "start_to": 30, "episodes": 5, "success": 0.6, "interval": [0.2, 0.9]}]}))
@@ -86,6 +88,7 @@ def test_pooled_counts_sft_once_per_seed_and_figures(tmp_path):
     assert "100 / 101" in md  # rl stage seconds of the two wm seeds
     assert "ind/wm/spearman_progress | 4 of 4 | 0.550" in md
     assert "| 0.40 -> 0.60 / - |" in md  # wm's training success by start fifth: seed 0's, seed 1 has none
+    assert "| SFT (-0.08, 600 sim episodes) / - |" in md  # seed 0 shipped SFT's weights; seed 1 had no test
     for name in ("success_vs_time.png", "training_curves.png", "rollout_wm_ind.gif", "rollout_sft_ood.gif",
                  "extreme_actions.png", "rollouts.png", "report.html"):
         assert (out / name).is_file(), name
