@@ -137,8 +137,9 @@ def _first_last(metrics: list[dict]) -> str:
 
 
 def _shipped(metrics: list[dict]) -> str:
-    """'PPO (+0.03) / SFT (-0.08)': which policy each run shipped after its acceptance test (the test's
-    paired difference in brackets); '-' where no run had the test (``rl.accept_episodes`` 0)."""
+    """'PPO (+0.03, 600 sim episodes) / SFT (-0.08, 600 sim episodes)': which policy each run shipped after
+    its acceptance test, with the test's paired difference and simulator episodes; '-' for a run without
+    the test (``rl.accept_episodes`` 0), and '-' alone when no run had it."""
     cells = [f"{'PPO' if m['accept/kept_ppo'] else 'SFT'} ({m['accept/difference']:+.2f}, {m['accept/episodes']} sim episodes)"
              if "accept/kept_ppo" in m else "-" for m in metrics]
     return " / ".join(cells) if any(c != "-" for c in cells) else "-"
