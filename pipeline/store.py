@@ -30,6 +30,8 @@ from typing import Any, Iterator
 
 import blake3
 
+from pipeline.machine import describe
+
 MANIFEST = "manifest.json"
 RESERVED = ("tmp", "locks", "refs", "runs", "sweeps", "partial")  # store directories that are not stages
 MANIFEST_SCHEMA = 1
@@ -192,6 +194,7 @@ class Store:
             "files": files,
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "host": socket.gethostname(),
+            "machine": describe(),  # the same key on another CPU kind may hold other bytes (pipeline.machine)
             **(extra or {}),
         }
         write_json_atomic(staging / MANIFEST, manifest)

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import os
+import platform
 import subprocess
 import sys
 from collections import Counter
@@ -250,3 +252,13 @@ def test_unread_needs_outside_the_declared_needs_is_a_clear_error(ws):
     assert proc.returncode != 0
     assert "stage 'rl': unread_needs names 'collect', which pipeline.yaml does not list in stages.rl.needs" in proc.stderr
     assert ws.executions() == []
+
+
+def test_the_manifest_names_the_machine_that_built_the_artifact(ws):
+    # a key names the computation, not its bytes: another CPU kind may build other floats (pipeline.machine)
+    ws.cli("run", "--until", "collect")
+    out = ws.cli("show", "collect").stdout
+    manifest = json.loads(out[out.index("{"):])
+    machine = manifest["machine"]
+    assert machine["cpu"] and machine["cpu"] != "unknown"
+    assert machine["cores"] == os.cpu_count() and machine["python"] == platform.python_version()
