@@ -19,7 +19,8 @@ Writes ``DIR/rollouts/round<k>/`` (one ``.npz`` per episode and ``episodes.jsonl
 resumes there) and ``DIR/policy/``: an sft-shaped artifact (``sft_policy.pt``, ``policy.json``,
 ``text_embeddings.json``, ``split.json``, ``metrics.json``) that ``scripts/evaluate_sft.py
 <collect> <tokenize> DIR/policy`` evaluates on the evaluate stage's states. With ``--rounds k`` the
-budget is split into k rounds and each round's player is the previous round's policy.
+budget is split into k rounds and each round's player is the previous round's policy (measured so far
+only with k = 1: docs/RESULTS.md).
 """
 from __future__ import annotations
 
@@ -44,7 +45,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--steps", type=int, default=20_096, help="simulator policy steps in all (PPO's `rule` budget)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--rounds", type=int, default=1)
+    ap.add_argument("--rounds", type=int, default=1, help="rounds of play and fit, the budget split evenly")
     ap.add_argument("--init", choices=["scratch", "sft"], default="scratch",
                     help="scratch: the sft recipe from a fresh network; sft: continue from the SFT weights")
     ap.add_argument("--max-steps", type=int, default=75, help="policy steps per episode (the evaluation horizon)")
@@ -58,6 +59,11 @@ def main() -> None:
     ap.add_argument("--keep", choices=["best", "last"], default=None, help="override the sft recipe's weights kept")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
+    for name in ("steps", "rounds", "group", "max_steps", "threads"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.noise_scale <= 0:
+        ap.error(f"--noise-scale must be > 0, got {args.noise_scale}")
 
     import torch
 
