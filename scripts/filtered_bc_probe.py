@@ -10,7 +10,9 @@ training environments, every episode the simulator calls a success becomes a dem
 observations and executed actions, at policy steps), and the sft stage's recipe is rerun on the
 demonstrations plus those episodes. With a 0/1 reward that is reward-weighted regression, i.e.
 one round of policy improvement from the hand-written (success) reward; failed episodes are never
-imitated.
+imitated. The rl stage runs the same method as ``rl.algorithm: filtered_bc`` (``stages.rl.filtered_bc``,
+whose fit this probe calls); this probe keeps its variants (``--group``, ``--imitate mixed``,
+``--init sft``, the recipe's own early stopping) and plays one simulator env with its own reset seeds.
 
     PYTHONPATH=. .venv/bin/python scripts/filtered_bc_probe.py <collect> <tokenize> <sft> --out DIR \
         [--steps 20096] [--seed 0] [--init scratch|sft] [--rounds 1]
@@ -171,73 +173,45 @@ def successes(dirs: list[Path], imitate: str = "all") -> tuple[dict[str, np.ndar
 
 
 def clone(args, rollout_dirs: list[Path], out: Path) -> None:
-    """The sft stage's recipe on its own training demonstrations plus the successful rollouts."""
-    import torch
-
+    """The sft stage's recipe on its own training demonstrations plus the successful rollouts
+    (``stages.rl.filtered_bc.clone``, with this probe's overrides)."""
     from stages.collect.dataset import Dataset
-    from stages.sft import Config, read_policy_json
-    from stages.sft.data import load_demo, pairs
+    from stages.rl.filtered_bc import clone as fit, demonstration_pairs, joined, sft_recipe
+    from stages.sft import read_policy_json
     from stages.sft.observation import ObservationFn
-    from stages.sft.policy import POLICY_FILE, behaviour_clone, evaluate_pairs, load_policy, make_policy, policy_kwargs
+    from stages.sft.policy import POLICY_FILE, load_policy
     from stages.tokenize.store import TokenStore
     from stages.tokenize.tokenizer import load_tokenizer
 
-    manifest = json.loads((args.sft / "manifest.json").read_text())
+    recipe = sft_recipe(args.sft)
     overrides = {k: v for k, v in (("epochs", args.epochs), ("lr", args.lr), ("keep", args.keep)) if v is not None}
-    cfg = Config(**{**manifest["key_inputs"]["config"], **overrides})
+    recipe = recipe.model_copy(update=overrides)
     info = read_policy_json(args.sft)
-    split = json.loads((args.sft / "split.json").read_text())
-    text = json.loads((args.sft / "text_embeddings.json").read_text())
-    obs_fn = ObservationFn(load_tokenizer(args.tokenize, "cpu"), text)
-    ds, store = Dataset(args.collect), TokenStore(args.tokenize)
-    gap = int(info["demonstrations"]["retime_max_gap"])
-    demos = {i: load_demo(ds, store, i, cfg.frame_skip, cfg.retime_min_move, gap) for i in split["train"] + split["val"]}
-    demo_obs, demo_act = pairs([demos[i] for i in split["train"]], obs_fn)
-    val = pairs([demos[i] for i in split["val"]], obs_fn) if split["val"] else None
+    obs_fn = ObservationFn(load_tokenizer(args.tokenize, "cpu"), json.loads((args.sft / "text_embeddings.json").read_text()))
+    demos, val = demonstration_pairs(args.sft, info, Dataset(args.collect), TokenStore(args.tokenize), obs_fn)
     own_obs, own_act, n_own = successes(rollout_dirs, args.imitate)
-    train = ({k: np.concatenate([demo_obs[k], own_obs[k].astype(demo_obs[k].dtype)]) for k in demo_obs},
-             np.concatenate([demo_act, own_act]))
-    loc, scale = train[1].mean(0), np.maximum(train[1].std(0), 1e-3)
-    weights = torch.as_tensor(info["demonstrations"]["loss_weights"], dtype=torch.float32)
-    if args.init == "sft":
-        policy = load_policy(args.sft / POLICY_FILE, "cpu")
-        loc, scale = np.asarray(info["action_loc"], np.float32), np.asarray(info["action_scale"], np.float32)
-        kwargs = None
-    else:
-        kwargs = policy_kwargs(loc, scale, features_dim=cfg.features_dim, net_arch=cfg.net_arch,
-                               use_proprio=cfg.use_proprio, dropout=cfg.dropout)
-        policy = make_policy(obs_fn.space, kwargs, cfg.lr)
-    print(f"[clone] {len(split['train'])} demonstrations ({len(demo_act)} pairs) + {n_own} own successes "
-          f"({len(own_act)} pairs); init {args.init}", flush=True)
-    t0 = time.perf_counter()
-    hist = behaviour_clone(policy, train, val, epochs=cfg.epochs, lr=cfg.lr, weight_decay=cfg.weight_decay,
-                           batch_size=cfg.batch_size, patience=cfg.patience, weights=weights, seed=cfg.seed,
-                           keep=cfg.keep)
-    held = evaluate_pairs(policy, val if val is not None else train, weights)
-    noise = np.maximum(cfg.noise_scale * np.asarray(held["residual_std"]), cfg.noise_floor)
-    with torch.no_grad():
-        policy.log_std.copy_(torch.as_tensor(np.log(noise), dtype=torch.float32))
+    train = joined(demos, [(own_obs, own_act)])
+    init = load_policy(args.sft / POLICY_FILE, "cpu") if args.init == "sft" else None
+    print(f"[clone] {len(demos[1])} demonstration pairs + {n_own} own successes ({len(own_act)} pairs); "
+          f"init {args.init}", flush=True)
+    policy, new_info, facts = fit(recipe, info, obs_fn.space, train, val, epochs=recipe.epochs, device="cpu",
+                                  keep=recipe.keep, init=init)
     tmp = out.with_name(out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     policy.save(str(tmp / POLICY_FILE))
-    new_info = {**info, "action_loc": np.asarray(loc).tolist(), "action_scale": np.asarray(scale).tolist(),
-                "initial_action_std": noise.tolist()}
-    if kwargs is not None:
-        new_info["policy_kwargs"] = {k: v for k, v in kwargs.items() if k != "features_extractor_class"}
     (tmp / "policy.json").write_text(json.dumps(new_info, indent=1) + "\n")
     for name in ("text_embeddings.json", "split.json"):
         shutil.copy(args.sft / name, tmp / name)
-    metrics = {"own_successes": n_own, "own_pairs": int(len(own_act)), "demo_pairs": int(len(demo_act)),
-               "epochs_run": hist["epochs_run"], "best_epoch": hist["best_epoch"],
-               "loss/val_best": min(hist["val"]) if hist["val"] else None, "val/r2": held["r2"],
-               "fit_seconds": time.perf_counter() - t0, "init": args.init, "imitate": args.imitate, "group": args.group,
-               "overrides": overrides, "from_sft": str(args.sft)}
+    metrics = {"own_successes": n_own, "own_pairs": int(len(own_act)), "demo_pairs": int(len(demos[1])),
+               "epochs_run": facts["epochs"], "best_epoch": facts["best_epoch"], "loss/val_best": facts["loss_val_best"],
+               "val/r2": facts["val_r2"], "fit_seconds": facts["fit_seconds"], "init": args.init,
+               "imitate": args.imitate, "group": args.group, "overrides": overrides, "from_sft": str(args.sft)}
     (tmp / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
     shutil.rmtree(out, ignore_errors=True)
     tmp.replace(out)
-    print(f"[clone] {hist['epochs_run']} epochs (best {hist['best_epoch']}), held-out R^2 "
-          f"{[round(v, 3) for v in held['r2']]}, {metrics['fit_seconds']:.0f} s -> {out}", flush=True)
+    print(f"[clone] {facts['epochs']} epochs (best {facts['best_epoch']}), held-out R^2 "
+          f"{[round(v, 3) for v in facts['val_r2']]}, {facts['fit_seconds']:.0f} s -> {out}", flush=True)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,8 @@ METHODS = {
     "wm": "PPO in world model (WM reward, ours)",
     "embedding": "PPO in world model (embedding reward head)",
     "proxy": "PPO in world model (proxy reward model)",
+    "rule_fbc": "Filtered BC in ManiSkill (its own successes imitated)",
+    "wm_fbc": "Filtered BC in world model (its done-head successes imitated)",
 }
 
 

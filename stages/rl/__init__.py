@@ -1,5 +1,6 @@
 """rl: the sft stage's policy fine-tuned by PPO inside the action world model (or, for
-``reward: rule``, inside the simulator).
+``reward: rule``, inside the simulator); or, with ``algorithm: filtered_bc``, re-cloned on the
+demonstrations plus its own successful episodes there (``stages.rl.filtered_bc``).
 
 The world model is the environment (``WorldModelVecEnv``) and, for ``reward: wm``, also the reward:
 alpha * sparse (its done head >= theta_sps) + beta * dense (perceptual similarity to the goal frame
@@ -15,13 +16,18 @@ Inputs:
     train_wm -- the action world model (with its proprioception head), its split, text embeddings
     wm_play -- whether that model was fine-tuned on the SFT policy's play, and the weights if so
     (``stages.wm_play.action_world_model``): the model everything here imagines in; not read with
-    reward ``rule`` (``unread_needs``: PPO runs in the simulator, diagnostics imagine in train_wm's)
+    reward ``rule`` (``unread_needs``: PPO runs in the simulator, diagnostics imagine in train_wm's);
+    train_wm and goals are not read either by a ``rule`` run with ``diagnostics: none`` and
+    ``precision_envs: 0`` (``reads_world_model``): its IND training episodes are then tokenize's
+    split, its instruction embeddings the sft artifact's
     goals -- one goal frame per environment
     sft -- the behaviour-cloned policy PPO starts from, its tasks and frame skip (``policy.json``)
 
 Outputs:
-    policy.zip          the PPO policy (stable-baselines3), loaded with ``stages.rl.load_policy``
-    snapshots/          policies at evenly spaced points of training + index.json (timesteps, wall s)
+    policy.zip          the PPO policy (stable-baselines3), loaded with ``stages.rl.load_policy``; with
+                        filtered_bc its last fit in the same format
+    snapshots/          policies at evenly spaced points of training (filtered_bc: after each round's fit)
+                        + index.json (timesteps, wall s)
     reward_heads.pt     fitted embedding / proxy heads (when fitted)
     guard.pt            the guard's done-classifier ensemble (``guard``; with ``guard_replay_rounds``
                         the last refit's, ``stages.rl.guard_refit``)
@@ -36,7 +42,10 @@ Outputs:
     reward_diagnostics.png  each module's reward along held-out successful episodes, IND and OOD
     rl.json             the facts this stage fixes, read by evaluate and the sweep report through
                         ``read_rl_facts``: the reward module, whether success pays the steps left,
-                        what ``rule`` pays (``rule_terms``) and the method label key (``method_of``)
+                        what ``rule`` pays (``rule_terms``), the algorithm (``ppo`` or ``filtered_bc``)
+                        and the method label key (``method_of``)
+    filtered_bc.json    with ``algorithm: filtered_bc``: per round, episodes played, successes imitated,
+                        pairs and the fit's held-out loss (``stages.rl.filtered_bc``)
     acceptance.json     with ``accept_episodes``: the acceptance test's SFT and PPO success per task on the
                         validation states, their paired difference and which policy ``policy.zip`` holds
                         (``stages.rl.acceptance``); its episodes in ``acceptance_episodes.jsonl``
@@ -122,8 +131,15 @@ class Config(BaseModel):
         "every other step (stages/rl/success_only.py); dense: the task's dense reward (reach, grasp, near the "
         "target) and success. success lifted PPO in ManiSkill above SFT in domain over 3 seeds where dense did not "
         "(docs/RESULTS.md)")
+    algorithm: Literal["ppo", "filtered_bc"] = Field(
+        "ppo", description="ppo: PPO from the SFT policy; filtered_bc: the SFT policy plays total_timesteps steps with "
+        "its own action noise, the episodes the environment calls successes join the demonstrations and the sft "
+        "recipe is rerun on them (stages/rl/filtered_bc.py; reward rule or wm)")
+    fbc_epochs: int = Field(100, ge=1, description="filtered_bc: epochs of the sft recipe, kept at the last one")
+    fbc_rounds: int = Field(1, ge=1, description="filtered_bc: rounds of play and fit, the budget split evenly; each "
+                            "round's player is the previous round's fit")
     # PPO
-    total_timesteps: int = Field(20000, ge=1, description="PPO environment steps")
+    total_timesteps: int = Field(20000, ge=1, description="environment steps (PPO's; filtered_bc's play)")
     n_steps: int = Field(64, ge=2, description="rollout length per env per PPO update")
     batch_size: int = Field(256, ge=2, description="PPO minibatch size")
     n_epochs: int = Field(4, ge=1, description="PPO epochs per update")
@@ -175,7 +191,9 @@ class Config(BaseModel):
     head_steps: int = Field(1000, ge=1, description="optimisation steps of each head")
     head_lr: float = Field(1e-3, gt=0)
     diagnostics_episodes: int = Field(16, ge=1, description="held-out successful episodes per split for diagnostics")
-    diagnostics: Literal["all", "selected"] = Field("all", description="diagnose every reward module or only the selected one")
+    diagnostics: Literal["all", "selected", "none"] = Field(
+        "all", description="diagnose every reward module, only the selected one, or none; with none, reward rule and "
+        "precision_envs 0 the run reads no world model and no goals (unread_needs: train_wm, goals)")
 
     @model_validator(mode="after")
     def _guard_replay_needs_guard(self) -> "Config":
@@ -196,6 +214,19 @@ class Config(BaseModel):
         if self.calibration_ratio and REGISTRY[self.reward].env != "wm":
             raise ValueError(f"calibration_ratio={self.calibration_ratio} gates the tasks PPO trains on in the world "
                              f"model, but reward {self.reward!r} trains in the simulator; set it to 0")
+        return self
+
+    @model_validator(mode="after")
+    def _filtered_bc_success(self) -> "Config":
+        if self.algorithm == "filtered_bc" and self.reward not in ("rule", "wm"):
+            raise ValueError(f"algorithm filtered_bc imitates the episodes the environment calls successes (the "
+                             f"simulator's for reward rule, the done head's for wm); reward {self.reward!r} changes "
+                             "nothing there: use reward rule or wm")
+        if self.algorithm == "filtered_bc" and self.calibration_ratio:
+            raise ValueError("calibration_ratio gates the tasks PPO trains on; algorithm filtered_bc plays every "
+                             "training environment: set it to 0")
+        if self.algorithm == "filtered_bc" and self.guard_replay_rounds:
+            raise ValueError("guard_replay_rounds refits the guard during PPO; algorithm filtered_bc runs no PPO: set it to 0")
         return self
 
     @model_validator(mode="after")
@@ -225,21 +256,34 @@ def run(ctx) -> None:
     inputs = RLInputs.load(ctx, cfg)
     metrics = train(ctx, cfg, inputs)
     facts = {"reward": cfg.reward, "success_payout": cfg.success_payout,
-             "rule_terms": cfg.rule_terms if cfg.reward == "rule" else None, "method": method_of(cfg.reward, cfg.rule_terms)}
+             "rule_terms": cfg.rule_terms if cfg.reward == "rule" else None, "algorithm": cfg.algorithm,
+             "method": method_of(cfg.reward, cfg.rule_terms, cfg.algorithm)}
     (ctx.out / RL_JSON).write_text(json.dumps(facts) + "\n")
     ctx.write_metrics(metrics)
+
+
+def reads_world_model(cfg: Config) -> bool:
+    """Whether a run reads train_wm's world model and the goals: it trains in the world model, diagnoses a
+    reward module, imagines its final policy (``precision_envs``) or fits a guard on its hidden states.
+    A ``rule`` run with ``diagnostics: none``, ``precision_envs: 0`` and no guard plays only in ManiSkill."""
+    return REGISTRY[cfg.reward].env == "wm" or cfg.diagnostics != "none" or cfg.precision_envs > 0 or cfg.guard
 
 
 def unread_needs(cfg: Config) -> list[str]:
     """The declared inputs this config does not read (the engine's ``Project.used_needs``): PPO in the
     simulator (``rule``) reads no play-tuned world model (its reward diagnostics imagine in
-    train_wm's), so a ``rule`` run neither waits for wm_play nor changes key with it."""
-    return ["wm_play"] if cfg.reward == "rule" else []
+    train_wm's), so a ``rule`` run neither waits for wm_play nor changes key with it; one that reads no
+    world model at all (``reads_world_model``) neither waits for train_wm and goals."""
+    unread = ["wm_play"] if cfg.reward == "rule" else []
+    return unread if reads_world_model(cfg) else [*unread, "train_wm", "goals"]
 
 
-def method_of(reward: str, rule_terms: str) -> str:
+def method_of(reward: str, rule_terms: str, algorithm: str = "ppo") -> str:
     """The method a run stands for in tables: the reward module, with ``rule`` split by what it pays
-    (``rule``: success alone, the default; ``rule_dense``: the task's dense reward)."""
+    (``rule``: success alone, the default; ``rule_dense``: the task's dense reward); filtered BC
+    (``algorithm: filtered_bc``) is ``<reward>_fbc`` (its reward only names the environment and its success)."""
+    if algorithm == "filtered_bc":
+        return f"{reward}_fbc"
     return "rule_dense" if reward == "rule" and rule_terms == "dense" else reward
 
 
@@ -254,4 +298,4 @@ def read_rl_facts(rl_dir: str | Path) -> dict:
     return facts
 
 
-__all__ = ["Config", "run", "unread_needs", "read_rl_facts", "method_of", "REWARDS", "RL_JSON"]
+__all__ = ["Config", "run", "unread_needs", "reads_world_model", "read_rl_facts", "method_of", "REWARDS", "RL_JSON"]

@@ -20,11 +20,11 @@ class RLInputs:
     store: object  # stages.tokenize.store.TokenStore
     dataset: object  # stages.collect.dataset.Dataset
     meta: dict  # episode_id -> EpisodeMeta
-    split: dict  # {"train": [...], "heldout": [...], "ood": [...]} from train_wm
+    split: dict  # {"train": [...], "heldout": [...], "ood": [...]} from train_wm (without it: tokenize's, OOD from collect)
     envs: list[Environment]  # every environment, in the goals artifact's order
-    goal_index: dict  # env_id -> row in the goals artifact
-    goals: dict  # stages.goals.load_goals
-    wm: object  # the action world model (stages.train_wm.rollout.WorldModel), fine-tuned by wm_play if it did
+    goal_index: dict  # env_id -> row in the goals artifact (empty without goals)
+    goals: dict | None  # stages.goals.load_goals; None when the run reads no world model (stages.rl.reads_world_model)
+    wm: object  # the action world model (stages.train_wm.rollout.WorldModel), fine-tuned by wm_play if it did; or None
     obs_fn: ObservationFn
     device: str
     sft_policy: object  # stages.sft.policy.TaskPolicy, what PPO starts from
@@ -35,29 +35,39 @@ class RLInputs:
         from stages.collect.dataset import Dataset
         from stages.goals import load_goals
         from stages.rl import unread_needs
-        from stages.sft import read_policy_json
+        from stages.sft import TEXT_EMBEDDINGS as SFT_TEXT_EMBEDDINGS, read_policy_json
         from stages.sft.policy import POLICY_FILE, load_policy
         from stages.tokenize.store import TokenStore
         from stages.tokenize.tokenizer import load_tokenizer
         from stages.train_wm.rollout import TEXT_EMBEDDINGS, load_world_model
         from stages.wm_play import action_world_model
 
+        sft_info = read_policy_json(ctx.input("sft"))
+        tok = load_tokenizer(ctx.input("tokenize"), ctx.device)
+        ds = Dataset(ctx.input("collect"))
+        envs = list_environments(ctx.input("collect"))
+        sft_policy = load_policy(ctx.input("sft") / POLICY_FILE, ctx.device)
+        if "train_wm" in unread_needs(cfg):  # ManiSkill only (stages.rl.reads_world_model): no world model, no goals
+            tok_split = json.loads((ctx.input("tokenize") / "split.json").read_text())
+            split = {"train": tok_split["train"], "heldout": tok_split.get("heldout", []),
+                     "ood": [m.episode_id for m in ds.episodes if m.split == "ood"]}
+            text = json.loads((ctx.input("sft") / SFT_TEXT_EMBEDDINGS).read_text())
+            return cls(tok=tok, store=TokenStore(ctx.input("tokenize")), dataset=ds,
+                       meta={m.episode_id: m for m in ds.episodes}, split=split, envs=envs, goal_index={}, goals=None,
+                       wm=None, obs_fn=ObservationFn(tok, text), device=ctx.device, sft_policy=sft_policy,
+                       sft_info=sft_info)
         wm_dir = ctx.input("train_wm")
         if "wm_play" not in unread_needs(cfg):
             wm = action_world_model(ctx.input("wm_play"), wm_dir, device=ctx.device)
         else:  # rule reads no play-tuned model (stages.rl.unread_needs): train_wm's
             wm = load_world_model(wm_dir, kind="action", device=ctx.device)
-        sft_info = read_policy_json(ctx.input("sft"))
         if int(sft_info["frame_skip"]) != wm.spec.frame_skip:
             raise ValueError(f"sft.frame_skip ({sft_info['frame_skip']}) != train_wm.frame_skip ({wm.spec.frame_skip}): "
                              "a policy step must mean the same number of control steps in both; set them equal")
         if "proprio" in sft_info["observation"] and wm.proprio_head is None:
             raise ValueError(f"the SFT policy observes proprioception but the world model in {wm_dir} has no "
                              "proprioception head (proprio_head.pt); rerun train_wm")
-        tok = load_tokenizer(ctx.input("tokenize"), ctx.device)
-        ds = Dataset(ctx.input("collect"))
         goals = load_goals(ctx.input("goals"))
-        envs = list_environments(ctx.input("collect"))
         goal_index = {env_id: i for i, env_id in enumerate(goals["env_ids"])}
         missing = [e.env_id for e in envs if e.env_id not in goal_index]
         if missing:
@@ -67,7 +77,7 @@ class RLInputs:
                    meta={m.episode_id: m for m in ds.episodes},
                    split=json.loads((wm_dir / "split.json").read_text()), envs=envs, goal_index=goal_index,
                    goals=goals, wm=wm, obs_fn=ObservationFn(tok, text), device=ctx.device,
-                   sft_policy=load_policy(ctx.input("sft") / POLICY_FILE, ctx.device), sft_info=sft_info)
+                   sft_policy=sft_policy, sft_info=sft_info)
 
     @property
     def tasks(self) -> list[str]:
@@ -76,8 +86,8 @@ class RLInputs:
 
     @property
     def frame_skip(self) -> int:
-        """Control steps per world-model (= policy) step."""
-        return int(self.wm.spec.frame_skip)
+        """Control steps per world-model (= policy) step (the SFT policy's; ``load`` checks the world model agrees)."""
+        return int(self.sft_info["frame_skip"])
 
     def tokens(self, episode_id: str) -> np.ndarray:
         """(T'+1, h, w) int64 tokens of an episode's world-model frames (every ``frame_skip``-th frame)."""

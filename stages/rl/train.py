@@ -16,7 +16,7 @@ from stages.rl.rewards import REGISTRY, GoalDistance, RewardParts, WMReward
 from stages.rl.rewards.fit import fit_embedding_head, fit_proxy, frame_set
 from stages.rl.self_imitation import SelfImitationRecorder
 from stages.rl.success_only import SuccessOnly
-from stages.rl.training import TrainingLog, plot_training
+from stages.rl.training import TrainingLog, plot_training, summary, write_episode_files
 from stages.rl.wm_env import WorldModelVecEnv
 from stages.sft.policy import flat_params
 
@@ -40,7 +40,7 @@ def train(ctx, cfg, inp) -> dict:
     metrics["train_environments"] = len(ppo_envs)
 
     # ---- learned rewards (fitted to the rule reward of IND training episodes) ----------------------
-    wanted = list(REGISTRY) if cfg.diagnostics == "all" else [cfg.reward]
+    wanted = {"all": list(REGISTRY), "selected": [cfg.reward], "none": []}[cfg.diagnostics]
     parts = RewardParts()
     fits = sorted({REGISTRY[name].needs_head for name in wanted} - {None})
     guard = None
@@ -62,11 +62,13 @@ def train(ctx, cfg, inp) -> dict:
             torch.save(_cpu_state(ensemble), ctx.out / "guard.pt")
         torch.save({k: _cpu_state(v) for k, v in parts.heads.items()}, ctx.out / "reward_heads.pt")
 
-    goal_third, goal_wrist = inp.goal_frames()
-    parts.distance = GoalDistance(goal_third, goal_wrist, inp.device, cfg.wm_dtype)  # LPIPS in the env's precision
+    if inp.goals is not None:
+        goal_third, goal_wrist = inp.goal_frames()
+        parts.distance = GoalDistance(goal_third, goal_wrist, inp.device, cfg.wm_dtype)  # LPIPS in the env's precision
 
     # ---- reward diagnostics on held-out successful episodes ------------------------------------------
-    metrics.update(_diagnose(ctx, cfg, inp, wanted, parts))
+    if wanted:
+        metrics.update(_diagnose(ctx, cfg, inp, wanted, parts))
 
     # ---- the environment and its reward --------------------------------------------------------------
     payout_gamma = cfg.gamma if cfg.success_payout else None
@@ -81,6 +83,12 @@ def train(ctx, cfg, inp) -> dict:
                                    payout_gamma=payout_gamma, guard=guard, dtype=cfg.wm_dtype)
     env = normalized_rewards(raw_env, cfg)
     refit = _guard_refit(ctx, cfg, inp, envs, raw_env, fs_fit) if guard is not None and cfg.guard_replay_rounds else None
+
+    if cfg.algorithm == "filtered_bc":
+        model = _filtered_bc(ctx, cfg, inp, raw_env, env, metrics)
+        initial = {k: v.detach().clone() for k, v in inp.sft_policy.state_dict().items()}  # for the acceptance test
+        env.close()
+        return _after_training(ctx, cfg, inp, model, initial, raw_env, metrics, t_stage)
 
     # ---- PPO from the SFT policy -------------------------------------------------------------------
     model = make_ppo(env, cfg, inp.sft_policy, inp.sft_info, inp.device)
@@ -129,12 +137,70 @@ def train(ctx, cfg, inp) -> dict:
         metrics["ppo/clipped_action_entries"] = int(raw_env.roll.clip_count)
         metrics["ppo/wm_dtype"] = raw_env.dtype  # what "auto" resolved to on this machine
     ctx.log.info("rl: %s", {k: v for k, v in metrics.items() if k.startswith("ppo/")})
+    return _after_training(ctx, cfg, inp, model, initial, raw_env, metrics, t_stage)
+
+
+def _after_training(ctx, cfg, inp, model, initial: dict, raw_env, metrics: dict, t_stage: float) -> dict:
+    """The acceptance test and the imagined-success check of the trained policy (either algorithm)."""
     if cfg.accept_episodes:
         metrics.update(_accept(ctx, cfg, inp, model, initial))
     if cfg.precision_envs:
         metrics.update(_imagined_precision(ctx, cfg, inp, model.policy, getattr(raw_env, "guard", None)))
     metrics["stage_seconds"] = time.perf_counter() - t_stage
     return metrics
+
+
+def _filtered_bc(ctx, cfg, inp, raw_env, env, metrics: dict):
+    """``fbc_rounds`` rounds of play in ``raw_env`` and the sft recipe on the demonstrations plus every
+    success so far (``stages.rl.filtered_bc``); the last fit, as an SB3 model like PPO's (policy.zip)."""
+    from stages.rl.filtered_bc import clone, demonstration_pairs, joined, play, sft_recipe
+
+    recipe = sft_recipe(ctx.input("sft"))
+    demos, val = demonstration_pairs(ctx.input("sft"), inp.sft_info, inp.dataset, inp.store, inp.obs_fn)
+    policy, info = inp.sft_policy, inp.sft_info
+    own, episodes, snapshots, rounds = [], [], [], []
+    step, t0, unfinished_from = 0, time.perf_counter(), 0
+    for k in range(cfg.fbc_rounds):
+        budget = cfg.total_timesteps // cfg.fbc_rounds + (k < cfg.total_timesteps % cfg.fbc_rounds)
+        policy.set_training_mode(False)
+        with ctx.progress(budget, f"rl: filtered BC round {k + 1}/{cfg.fbc_rounds}, play ({cfg.reward})", unit="step") as bar:
+            played = play(policy, raw_env, budget, seed=cfg.seed * 1000 + k, step0=step, progress=bar)
+        unfinished_from = step + played.steps if k < cfg.fbc_rounds - 1 else played.budget_reached_at
+        step += played.steps
+        episodes += played.episodes
+        own += played.successes
+        train = joined(demos, own)
+        with ctx.progress(cfg.fbc_epochs, f"rl: filtered BC round {k + 1}/{cfg.fbc_rounds}, fit", unit="epoch") as bar:
+            policy, info, fit = clone(recipe, inp.sft_info, inp.obs_fn.space, train, val, epochs=cfg.fbc_epochs,
+                                      device=inp.device, progress=bar)
+        wins = sum(e["success"] for e in played.episodes)
+        rounds.append({"round": k, "env_steps": played.steps, "episodes": len(played.episodes), "successes": wins,
+                       "imitated_episodes": len(own), "demonstration_pairs": int(len(demos[1])),
+                       "own_pairs": int(len(train[1]) - len(demos[1])), **fit})
+        ctx.log.info("rl: filtered BC round %d: %d episodes, %d successes (%.2f); fit on %d demonstration + %d own pairs, "
+                     "held-out loss %.4f", k + 1, len(played.episodes), wins, wins / max(1, len(played.episodes)),
+                     len(demos[1]), rounds[-1]["own_pairs"], fit["loss_val_last"] or float("nan"))
+        model = make_ppo(env, cfg, policy, info, inp.device)  # the fit in PPO's format: evaluate reads one kind
+        path = ctx.out / "snapshots" / f"step_{step:08d}.zip"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        model.save(path)
+        snapshots.append({"timesteps": step, "wall_seconds": time.perf_counter() - t0,
+                          "path": str(path.relative_to(ctx.out))})
+    seconds = time.perf_counter() - t0
+    model.save(ctx.out / "policy.zip")
+    write_episode_files(ctx.out, episodes, unfinished_from, snapshots)
+    (ctx.out / "filtered_bc.json").write_text(json.dumps({"rounds": rounds}, indent=1) + "\n")
+    plot_training(episodes, ctx.out / "training.png", f"filtered BC, reward={cfg.reward}", unfinished_from)
+    metrics.update({f"ppo/{k}": v for k, v in summary(episodes, unfinished_from).items()})
+    metrics.update({
+        "ppo/timesteps": step, "ppo/seconds": seconds, "ppo/env_steps_per_second": step / seconds if seconds else 0.0,
+        "filtered_bc/imitated_episodes": len(own), "filtered_bc/own_pairs": rounds[-1]["own_pairs"],
+        "filtered_bc/loss_val_last": rounds[-1]["loss_val_last"], "filtered_bc/rounds": cfg.fbc_rounds,
+    })
+    if isinstance(raw_env, WorldModelVecEnv):
+        metrics["ppo/wm_dtype"] = raw_env.dtype
+    ctx.log.info("rl: %s", {k: v for k, v in metrics.items() if k.startswith(("ppo/", "filtered_bc/"))})
+    return model
 
 
 def _accept(ctx, cfg, inp, model, initial: dict) -> dict:
@@ -308,7 +374,7 @@ def _sim_vec_env(ctx, cfg, inp, envs, payout_gamma: float | None):
 
     scenes = read_scenes_json(ctx.input("collect") / "scenes.json")
     facts = read_sim_facts(ctx.input("collect"))  # render and control as the demonstrations were recorded
-    specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction, inp.goal_index[e.env_id]) for e in envs]
+    specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction, inp.goal_index.get(e.env_id, -1)) for e in envs]
     n = min(cfg.sim_envs, len(specs))
     groups = [specs[i::n] for i in range(n)]
 

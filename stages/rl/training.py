@@ -45,10 +45,10 @@ class TrainingLog(BaseCallback):
         self._len += 1
         for i in np.nonzero(dones)[0]:
             info = infos[i]
-            terminated = info.get("terminated_by_done_head", not info.get("TimeLimit.truncated", False))
+            terminated, success = episode_outcome(info)
             self.episodes.append({"t": int(self.num_timesteps), "start": int(self._start[i]), "wall": time.perf_counter() - self._t0,
                                   "return": float(self._ret[i]), "length": int(self._len[i]),
-                                  "terminated": bool(terminated), "success": bool(info.get("success", terminated)),
+                                  "terminated": terminated, "success": success,
                                   "env": info.get("env", ""), "task": task_of(info.get("env", ""))})
             if self.curves is not None:
                 self.curves.scalar("episode/return", self._ret[i], self.num_timesteps)
@@ -72,26 +72,44 @@ class TrainingLog(BaseCallback):
         return int(self._start.min()) if self._start is not None else int(self.num_timesteps)
 
     def write(self) -> None:
-        (self.out / "snapshots").mkdir(parents=True, exist_ok=True)
-        (self.out / "snapshots" / "index.json").write_text(json.dumps(self.snapshots, indent=1) + "\n")
-        (self.out / "episodes.json").write_text(json.dumps(self.episodes) + "\n")
-        (self.out / "success_by_start.json").write_text(json.dumps(
-            {"unfinished_from": self.unfinished_from(), "bins": success_by_start(self.episodes, self.unfinished_from()),
-             "by_task": success_by_task(self.episodes, self.unfinished_from())},
-            indent=1) + "\n")
+        write_episode_files(self.out, self.episodes, self.unfinished_from(), self.snapshots)
 
     def summary(self, window: int = 50) -> dict:
-        eps = self.episodes
-        if not eps:
-            return {"episodes": 0}
-        last = eps[-window:]
-        first = eps[:window]
-        fifths = success_by_start(eps, self.unfinished_from(), bins=5)
-        return {"episodes": len(eps), "success_first_fifth": fifths[0]["success"] if fifths else None,
-                "success_last_fifth": fifths[-1]["success"] if fifths else None, "terminated_fraction": float(np.mean([e["terminated"] for e in eps])),
-                "return_first": float(np.mean([e["return"] for e in first])),
-                "return_last": float(np.mean([e["return"] for e in last])),
-                "length_last": float(np.mean([e["length"] for e in last]))}
+        return summary(self.episodes, self.unfinished_from(), window)
+
+
+def episode_outcome(info: dict) -> tuple[bool, bool]:
+    """(terminated, success) of the episode a VecEnv step ended: the world model's done head ended it, or
+    the simulator (which says whether it succeeded; a world-model episode succeeds when its done head ends it)."""
+    terminated = bool(info.get("terminated_by_done_head", not info.get("TimeLimit.truncated", False)))
+    return terminated, bool(info.get("success", terminated))
+
+
+def write_episode_files(out: Path, episodes: list[dict], unfinished_from: int, snapshots: list[dict]) -> None:
+    """``snapshots/index.json``, ``episodes.json`` and ``success_by_start.json`` (module docstring)."""
+    out = Path(out)
+    (out / "snapshots").mkdir(parents=True, exist_ok=True)
+    (out / "snapshots" / "index.json").write_text(json.dumps(snapshots, indent=1) + "\n")
+    (out / "episodes.json").write_text(json.dumps(episodes) + "\n")
+    (out / "success_by_start.json").write_text(json.dumps(
+        {"unfinished_from": unfinished_from, "bins": success_by_start(episodes, unfinished_from),
+         "by_task": success_by_task(episodes, unfinished_from)},
+        indent=1) + "\n")
+
+
+def summary(episodes: list[dict], unfinished_from: int, window: int = 50) -> dict:
+    """Episode count, success in the first and last fifth by start step, terminated fraction, return and length."""
+    eps = episodes
+    if not eps:
+        return {"episodes": 0}
+    last = eps[-window:]
+    first = eps[:window]
+    fifths = success_by_start(eps, unfinished_from, bins=5)
+    return {"episodes": len(eps), "success_first_fifth": fifths[0]["success"] if fifths else None,
+            "success_last_fifth": fifths[-1]["success"] if fifths else None, "terminated_fraction": float(np.mean([e["terminated"] for e in eps])),
+            "return_first": float(np.mean([e["return"] for e in first])),
+            "return_last": float(np.mean([e["return"] for e in last])),
+            "length_last": float(np.mean([e["length"] for e in last]))}
 
 
 def task_of(env: str) -> str:

@@ -19,7 +19,7 @@ from stages.sweep_report.figures import rollout_strips, success_vs_time, trainin
 from stages.sweep_report.gather import PointRun, gather
 from stages.sweep_report.paired import across_seeds, by_split, fmt_across_seeds, fmt_difference, pair_up
 
-ORDER = ["sft", "rule", "rule_dense", "wm", "embedding", "proxy"]
+ORDER = ["sft", *METHODS]  # table order: the registry's (stages.evaluate.writeup.METHODS)
 LABELS = {"sft": "Supervised finetune (SFT)", **METHODS}
 
 

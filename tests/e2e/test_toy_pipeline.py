@@ -232,6 +232,42 @@ def test_an_acceptance_test_that_ppo_cannot_pass_ships_the_sft_policy(store):
     assert SFT_SHIPPED in report and "Acceptance test before shipping" in report
 
 
+def test_filtered_bc_imitates_its_own_simulator_successes_and_ships_a_policy_evaluate_reads(store):
+    sets = ["--set", "rl.algorithm=filtered_bc", "--set", "rl.reward=rule", "--set", "rl.fbc_rounds=2",
+            "--set", "rl.precision_envs=0", "--set", "rl.diagnostics=none"]
+    acts = actions(cli(store, "run", "--profile", "toy", "--until", "evaluate", *sets))
+    assert acts[("sft", "cached")] == 1 and acts[("rl", "ran")] == 1 and acts[("evaluate", "ran")] == 1
+    rl = shown(store, "rl", *sets)
+    assert json.loads((rl / "rl.json").read_text())["method"] == "rule_fbc"
+    # ManiSkill only, nothing diagnosed or imagined: the run read (and is keyed by) no world model and no goals
+    assert sorted(json.loads((rl / "manifest.json").read_text())["key_inputs"]["inputs"]) == ["collect", "sft", "tokenize"]
+    assert shown(store, "rl", *sets, "--set", "train_wm.dim=48") == rl
+    rounds = json.loads((rl / "filtered_bc.json").read_text())["rounds"]
+    episodes = json.loads((rl / "episodes.json").read_text())
+    sft = json.loads((shown(store, "sft") / "metrics.json").read_text())
+    assert len(rounds) == 2 and sum(r["episodes"] for r in rounds) == len(episodes) > 0
+    assert rounds[-1]["imitated_episodes"] == sum(e["success"] for e in episodes)  # every success so far, no failure
+    assert rounds[-1]["own_pairs"] == sum(e["length"] for e in episodes if e["success"])
+    assert all(r["demonstration_pairs"] == sft["pairs/train"] and r["epochs"] == 3 for r in rounds)
+    snaps = json.loads((rl / "snapshots" / "index.json").read_text())
+    assert len(snaps) == 2 and all((rl / s["path"]).is_file() for s in snaps)  # one policy per round
+    import torch
+
+    from stages.sft.policy import POLICY_FILE, load_policy
+
+    fitted, first = load_policy(rl / "policy.zip"), load_policy(shown(store, "sft") / POLICY_FILE)
+    fitted.set_training_mode(False), first.set_training_mode(False)
+    space = first.observation_space
+    space.seed(0)
+    obs = [space.sample() for _ in range(8)]
+    batch = {k: torch.as_tensor(np.stack([o[k] for o in obs])) for k in obs[0]}
+    with torch.no_grad():
+        assert not torch.allclose(fitted.mean_action(batch), first.mean_action(batch), atol=1e-3)  # a new fit, not SFT
+    ev = shown(store, "evaluate", *sets)
+    assert json.loads((ev / "metrics.json").read_text())["method"] == "rule_fbc"
+    assert "Filtered BC in ManiSkill" in (ev / "report.md").read_text()
+
+
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
     from types import SimpleNamespace
 
