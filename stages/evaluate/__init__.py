@@ -11,7 +11,9 @@ or Ray tasks under ``--executor ray``).
 Inputs:
     collect -- scene catalog and split (scenes.json), which scenes were trained on
     tokenize -- the tokenizer (the policy's observation function)
-    train_wm -- the action WM (extreme-action figure), its split
+    train_wm -- the action WM (extreme-action figure), its split; not read with
+                ``world_model_figure: false`` (``unread_needs``), so a ManiSkill-only rl run
+                (``stages.rl.reads_world_model``) is evaluated without building a world model
     sft -- sft_policy.pt, text embeddings (instructions)
     rl -- policy.zip, snapshots/, rl.json (reward module, method),
           training.png, reward_diagnostics.png
@@ -26,7 +28,7 @@ Outputs:
 
 Key includes:
     this config (episode counts, horizon, seeds, extra scenes: their content, not a file path) and
-    the keys of collect, tokenize, train_wm, sft and rl. Adding evaluation scenes reruns only evaluate.
+    the keys of collect, tokenize, train_wm (when read), sft and rl. Adding evaluation scenes reruns only evaluate.
 
 Toy profile:
     2 episodes per (policy, task, split), 1 snapshot episode, horizon 20.
@@ -60,11 +62,19 @@ class Config(BaseModel):
     image_size: int | None = Field(None, ge=16, description="camera size; None = collect's (sim.json), "
                                    "any other value must equal it")
     robot_mesh: Literal["lowpoly", "stock"] | None = Field(None, description="None = collect's; any other value must equal it")
+    world_model_figure: bool = Field(True, description="the action world model under extreme actions (Fig. 9); "
+                                     "false: train_wm is not read, not waited for and not keyed")
 
     @field_validator("extra_scenes", mode="before")
     @classmethod
     def _read_file(cls, v):
         return load_extra_scenes(v)
+
+
+def unread_needs(cfg: Config) -> list[str]:
+    """The declared inputs this config does not read (``pipeline.plan.Project.used_needs``): train_wm
+    feeds only the extreme-action figure."""
+    return [] if cfg.world_model_figure else ["train_wm"]
 
 
 SEED_BASE = 1_000_000  # collection seeds are small; evaluation states are new ones
@@ -99,4 +109,4 @@ def run(ctx) -> None:
     ctx.write_metrics(metrics)
 
 
-__all__ = ["Config", "run", "SEED_BASE"]
+__all__ = ["Config", "run", "unread_needs", "SEED_BASE"]

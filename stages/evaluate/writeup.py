@@ -99,7 +99,7 @@ def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
                      for n, cap in [("rollouts.png", "All of them at a glance"), *gifs])
         sections.append(("Rollouts in the simulator, the first episode of each task (Figs. 4-5)", md, hb))
 
-    extreme = _extreme_actions(ctx, out)
+    extreme = _extreme_actions(ctx, out) if cfg.world_model_figure else None
     if extreme:
         sections.append(("The action world model under extreme actions (Fig. 9)", *image_section([extreme])))
     write_report(out, f"RoboScape-R evaluation: {METHODS[method]}", sections)

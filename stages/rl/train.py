@@ -211,9 +211,10 @@ def _accept(ctx, cfg, inp, model, initial: dict) -> dict:
     (ctx.out / "acceptance.json").write_text(json.dumps(result, indent=1) + "\n")
     (ctx.out / "acceptance_episodes.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     d = result["difference"]
-    ctx.log.info("rl: acceptance test on %d IND validation states: SFT %.3f, PPO %.3f, PPO minus SFT %+.3f [%+.3f, %+.3f] "
-                 "(margin %+.2f): keeping %s", d["n"], result["sft_success"], result["ppo_success"], d["diff"], d["lo"],
-                 d["hi"], cfg.accept_margin, "PPO's policy" if result["kept"] == "ppo" else "the SFT policy")
+    name = "PPO" if cfg.algorithm == "ppo" else "filtered BC"  # acceptance.json's "ppo": the rl stage's policy, either
+    ctx.log.info("rl: acceptance test on %d IND validation states: SFT %.3f, %s %.3f, %s minus SFT %+.3f [%+.3f, %+.3f] "
+                 "(margin %+.2f): keeping %s", d["n"], result["sft_success"], name, result["ppo_success"], name, d["diff"],
+                 d["lo"], d["hi"], cfg.accept_margin, f"the {name} policy" if result["kept"] == "ppo" else "the SFT policy")
     if result["kept"] == "sft":
         model.policy.load_state_dict(initial)
         model.save(ctx.out / "policy.zip")

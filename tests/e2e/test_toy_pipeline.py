@@ -234,7 +234,7 @@ def test_an_acceptance_test_that_ppo_cannot_pass_ships_the_sft_policy(store):
 
 def test_filtered_bc_imitates_its_own_simulator_successes_and_ships_a_policy_evaluate_reads(store):
     sets = ["--set", "rl.algorithm=filtered_bc", "--set", "rl.reward=rule", "--set", "rl.fbc_rounds=2",
-            "--set", "rl.precision_envs=0", "--set", "rl.diagnostics=none"]
+            "--set", "rl.precision_envs=0", "--set", "rl.diagnostics=none", "--set", "evaluate.world_model_figure=false"]
     acts = actions(cli(store, "run", "--profile", "toy", "--until", "evaluate", *sets))
     assert acts[("sft", "cached")] == 1 and acts[("rl", "ran")] == 1 and acts[("evaluate", "ran")] == 1
     rl = shown(store, "rl", *sets)
@@ -266,6 +266,9 @@ def test_filtered_bc_imitates_its_own_simulator_successes_and_ships_a_policy_eva
     ev = shown(store, "evaluate", *sets)
     assert json.loads((ev / "metrics.json").read_text())["method"] == "rule_fbc"
     assert "Filtered BC in ManiSkill" in (ev / "report.md").read_text()
+    # without the world-model figure evaluate reads no world model either: the whole run is ManiSkill's
+    assert sorted(json.loads((ev / "manifest.json").read_text())["key_inputs"]["inputs"]) == ["collect", "rl", "sft", "tokenize"]
+    assert not (ev / "extreme_actions.png").exists() and shown(store, "evaluate", *sets, "--set", "train_wm.dim=48") == ev
 
 
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
