@@ -19,6 +19,8 @@ METHODS = {
     "proxy": "PPO in world model (proxy reward model)",
     "rule_fbc": "Filtered BC in ManiSkill (its own successes imitated)",
     "wm_fbc": "Filtered BC in world model (its done-head successes imitated)",
+    "rule_fbc_random": "Filtered BC control in ManiSkill (random own episodes imitated)",
+    "wm_fbc_random": "Filtered BC control in world model (random own episodes imitated)",
 }
 
 

@@ -42,10 +42,10 @@ Outputs:
     reward_diagnostics.png  each module's reward along held-out successful episodes, IND and OOD
     rl.json             the facts this stage fixes, read by evaluate and the sweep report through
                         ``read_rl_facts``: the reward module, whether success pays the steps left,
-                        what ``rule`` pays (``rule_terms``), the algorithm (``ppo`` or ``filtered_bc``)
-                        and the method label key (``method_of``)
-    filtered_bc.json    with ``algorithm: filtered_bc``: per round, episodes played, successes imitated,
-                        pairs and the fit's held-out loss (``stages.rl.filtered_bc``)
+                        what ``rule`` pays (``rule_terms``), the algorithm (``ppo`` or ``filtered_bc``),
+                        what filtered BC imitates (``fbc_select``) and the method label key (``method_of``)
+    filtered_bc.json    with ``algorithm: filtered_bc``: per round, episodes played, successes, episodes
+                        imitated (and how many of them successes), pairs and the fit's held-out loss (``stages.rl.filtered_bc``)
     acceptance.json     with ``accept_episodes``: the acceptance test's SFT and PPO success per task on the
                         validation states, their paired difference and which policy ``policy.zip`` holds
                         (``stages.rl.acceptance``); its episodes in ``acceptance_episodes.jsonl``
@@ -138,6 +138,10 @@ class Config(BaseModel):
     fbc_epochs: int = Field(100, ge=1, description="filtered_bc: epochs of the sft recipe, kept at the last one")
     fbc_rounds: int = Field(1, ge=1, description="filtered_bc: rounds of play and fit, the budget split evenly; each "
                             "round's player is the previous round's fit")
+    fbc_select: Literal["success", "random"] = Field(
+        "success", description="filtered_bc: which played episodes are imitated. success: those the environment calls "
+        "successes; random (a control): episodes drawn at random whatever their outcome, as many steps as the "
+        "round's successes have, so the fit sees as much own data without the environment's selection")
     # PPO
     total_timesteps: int = Field(20000, ge=1, description="environment steps (PPO's; filtered_bc's play)")
     n_steps: int = Field(64, ge=2, description="rollout length per env per PPO update")
@@ -225,6 +229,9 @@ class Config(BaseModel):
         if self.algorithm == "filtered_bc" and self.calibration_ratio:
             raise ValueError("calibration_ratio gates the tasks PPO trains on; algorithm filtered_bc plays every "
                              "training environment: set it to 0")
+        if self.fbc_select != "success" and self.algorithm != "filtered_bc":
+            raise ValueError(f"fbc_select={self.fbc_select!r} chooses what filtered BC imitates, but algorithm is "
+                             f"{self.algorithm!r}: set rl.algorithm=filtered_bc or leave fbc_select at success")
         if self.algorithm == "filtered_bc" and self.guard_replay_rounds:
             raise ValueError("guard_replay_rounds refits the guard during PPO; algorithm filtered_bc runs no PPO: set it to 0")
         return self
@@ -257,7 +264,7 @@ def run(ctx) -> None:
     metrics = train(ctx, cfg, inputs)
     facts = {"reward": cfg.reward, "success_payout": cfg.success_payout,
              "rule_terms": cfg.rule_terms if cfg.reward == "rule" else None, "algorithm": cfg.algorithm,
-             "method": method_of(cfg.reward, cfg.rule_terms, cfg.algorithm)}
+             "method": method_of(cfg.reward, cfg.rule_terms, cfg.algorithm, cfg.fbc_select), "fbc_select": cfg.fbc_select}
     (ctx.out / RL_JSON).write_text(json.dumps(facts) + "\n")
     ctx.write_metrics(metrics)
 
@@ -278,12 +285,13 @@ def unread_needs(cfg: Config) -> list[str]:
     return unread if reads_world_model(cfg) else [*unread, "train_wm", "goals"]
 
 
-def method_of(reward: str, rule_terms: str, algorithm: str = "ppo") -> str:
+def method_of(reward: str, rule_terms: str, algorithm: str = "ppo", fbc_select: str = "success") -> str:
     """The method a run stands for in tables: the reward module, with ``rule`` split by what it pays
     (``rule``: success alone, the default; ``rule_dense``: the task's dense reward); filtered BC
-    (``algorithm: filtered_bc``) is ``<reward>_fbc`` (its reward only names the environment and its success)."""
+    (``algorithm: filtered_bc``) is ``<reward>_fbc`` (its reward only names the environment and its success),
+    and its control that imitates random episodes (``fbc_select: random``) ``<reward>_fbc_random``."""
     if algorithm == "filtered_bc":
-        return f"{reward}_fbc"
+        return f"{reward}_fbc" + ("_random" if fbc_select == "random" else "")
     return "rule_dense" if reward == "rule" and rule_terms == "dense" else reward
 
 

@@ -15,6 +15,10 @@ round's fit, each fit on the demonstrations and every success so far.
 What counts as a success is the environment's: in ManiSkill (``reward: rule``) the simulator's
 success check; in the world model (``reward: wm``) the done head's termination, so the policy also
 imitates the episodes the done head wrongly calls successes (``imagined/<split>/precision``).
+
+``fbc_select: random`` is the control that says what the selection adds: the same play, but the
+imitated episodes are drawn at random from all those played, whatever their outcome, until they
+hold as many steps as the round's successes (``random_like``): as much own data, no selection.
 """
 from __future__ import annotations
 
@@ -36,15 +40,17 @@ class Played:
 
     episodes: list[dict] = field(default_factory=list)  # TrainingLog's fields: t, start, wall, return, length, ...
     successes: list[tuple[dict, np.ndarray]] = field(default_factory=list)  # (obs key -> (T, ...), actions (T, 7))
+    failures: list[tuple[dict, np.ndarray]] = field(default_factory=list)  # the same, with keep_failures only
     steps: int = 0  # env steps taken (every env's), including those that finished the last episodes
     budget_reached_at: int = 0  # the step every recorded episode started before
 
 
-def play(policy, env, budget: int, *, seed: int, step0: int = 0, progress=None) -> Played:
+def play(policy, env, budget: int, *, seed: int, step0: int = 0, keep_failures: bool = False,
+         progress=None) -> Played:
     """Episodes of ``policy`` with sampled actions in the VecEnv ``env`` until ``budget`` env steps (summed
     over its envs) have been taken; the episodes running then are played to their end and no new one is
     recorded (so short successful episodes are not over-counted at the cut). Steps are numbered from
-    ``step0``."""
+    ``step0``. The successful episodes' steps are kept, and the failed ones' with ``keep_failures``."""
     torch.manual_seed(seed)
     n = env.num_envs
     obs = env.reset()  # key -> (n, ...)
@@ -68,10 +74,11 @@ def play(policy, env, budget: int, *, seed: int, step0: int = 0, progress=None) 
                 out.episodes.append({"t": now, "start": int(start[i]), "wall": time.perf_counter() - t0,
                                      "return": float(ret[i]), "length": len(buffers[i]), "terminated": terminated,
                                      "success": success, "env": env_key, "task": task_of(env_key)})
-                if success:
+                if success or keep_failures:
                     steps_obs, steps_act = zip(*buffers[i])
-                    out.successes.append(({k: np.stack([o[k] for o in steps_obs]) for k in steps_obs[0]},
-                                          np.stack(steps_act).astype(np.float32)))
+                    (out.successes if success else out.failures).append(
+                        ({k: np.stack([o[k] for o in steps_obs]) for k in steps_obs[0]},
+                         np.stack(steps_act).astype(np.float32)))
             buffers[i], ret[i], start[i] = [], 0.0, now
             recording[i] = out.steps < budget
         if progress is not None and min(out.steps, budget) > reported:
@@ -80,6 +87,20 @@ def play(policy, env, budget: int, *, seed: int, step0: int = 0, progress=None) 
         if out.steps >= budget and not out.budget_reached_at:
             out.budget_reached_at = now
     return out
+
+
+def random_like(played: Played, rng: np.random.Generator) -> list[tuple[dict, np.ndarray]]:
+    """``fbc_select: random``: played episodes (successful or not) in a random order, taken while they hold
+    fewer steps than the successes do (the last one taken may pass that count); none without a success."""
+    target = sum(len(a) for _, a in played.successes)
+    pool = played.successes + played.failures
+    picked, steps = [], 0
+    for i in rng.permutation(len(pool)):
+        if steps >= target:
+            break
+        picked.append(pool[i])
+        steps += len(pool[i][1])
+    return picked
 
 
 def sft_recipe(sft_dir: Path):
@@ -154,4 +175,4 @@ def clone(recipe, sft_info: dict, observation_space, train: tuple[dict, np.ndarr
     return policy, info, facts
 
 
-__all__ = ["Played", "play", "sft_recipe", "demonstration_pairs", "joined", "clone"]
+__all__ = ["Played", "play", "random_like", "sft_recipe", "demonstration_pairs", "joined", "clone"]

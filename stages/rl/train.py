@@ -153,7 +153,7 @@ def _after_training(ctx, cfg, inp, model, initial: dict, raw_env, metrics: dict,
 def _filtered_bc(ctx, cfg, inp, raw_env, env, metrics: dict):
     """``fbc_rounds`` rounds of play in ``raw_env`` and the sft recipe on the demonstrations plus every
     success so far (``stages.rl.filtered_bc``); the last fit, as an SB3 model like PPO's (policy.zip)."""
-    from stages.rl.filtered_bc import clone, demonstration_pairs, joined, play, sft_recipe
+    from stages.rl.filtered_bc import clone, demonstration_pairs, joined, play, random_like, sft_recipe
 
     recipe = sft_recipe(ctx.input("sft"))
     demos, val = demonstration_pairs(ctx.input("sft"), inp.sft_info, inp.dataset, inp.store, inp.obs_fn)
@@ -164,22 +164,29 @@ def _filtered_bc(ctx, cfg, inp, raw_env, env, metrics: dict):
         budget = cfg.total_timesteps // cfg.fbc_rounds + (k < cfg.total_timesteps % cfg.fbc_rounds)
         policy.set_training_mode(False)
         with ctx.progress(budget, f"rl: filtered BC round {k + 1}/{cfg.fbc_rounds}, play ({cfg.reward})", unit="step") as bar:
-            played = play(policy, raw_env, budget, seed=cfg.seed * 1000 + k, step0=step, progress=bar)
+            played = play(policy, raw_env, budget, seed=cfg.seed * 1000 + k, step0=step,
+                          keep_failures=cfg.fbc_select == "random", progress=bar)
         unfinished_from = step + played.steps if k < cfg.fbc_rounds - 1 else played.budget_reached_at
         step += played.steps
         episodes += played.episodes
-        own += played.successes
+        picked = (played.successes if cfg.fbc_select == "success"
+                  else random_like(played, np.random.default_rng([cfg.seed, k])))  # its own stream: play unchanged
+        own += picked
         train = joined(demos, own)
         with ctx.progress(cfg.fbc_epochs, f"rl: filtered BC round {k + 1}/{cfg.fbc_rounds}, fit", unit="epoch") as bar:
             policy, info, fit = clone(recipe, inp.sft_info, inp.obs_fn.space, train, val, epochs=cfg.fbc_epochs,
                                       device=inp.device, progress=bar)
         wins = sum(e["success"] for e in played.episodes)
         rounds.append({"round": k, "env_steps": played.steps, "episodes": len(played.episodes), "successes": wins,
+                       "select": cfg.fbc_select, "picked_episodes": len(picked),
+                       "picked_successes": sum(any(p is s for s in played.successes) for p in picked),
                        "imitated_episodes": len(own), "demonstration_pairs": int(len(demos[1])),
                        "own_pairs": int(len(train[1]) - len(demos[1])), **fit})
-        ctx.log.info("rl: filtered BC round %d: %d episodes, %d successes (%.2f); fit on %d demonstration + %d own pairs, "
-                     "held-out loss %.4f", k + 1, len(played.episodes), wins, wins / max(1, len(played.episodes)),
-                     len(demos[1]), rounds[-1]["own_pairs"], fit["loss_val_last"] or float("nan"))
+        ctx.log.info("rl: filtered BC round %d: %d episodes, %d successes (%.2f); imitating %d episodes (%s, %d of "
+                     "them successes); fit on %d demonstration + %d own pairs, held-out loss %.4f", k + 1,
+                     len(played.episodes), wins, wins / max(1, len(played.episodes)), len(picked), cfg.fbc_select,
+                     rounds[-1]["picked_successes"], len(demos[1]), rounds[-1]["own_pairs"],
+                     fit["loss_val_last"] or float("nan"))
         model = make_ppo(env, cfg, policy, info, inp.device)  # the fit in PPO's format: evaluate reads one kind
         path = ctx.out / "snapshots" / f"step_{step:08d}.zip"
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from stages.rl import Config, method_of
-from stages.rl.filtered_bc import joined, play
+from stages.rl.filtered_bc import joined, play, random_like
 from stages.rl.training import episode_outcome
 
 
@@ -90,9 +90,41 @@ def test_own_episodes_follow_the_demonstrations():
 def test_filtered_bc_is_named_and_checked_by_its_config():
     assert method_of("rule", "success", "filtered_bc") == "rule_fbc" and method_of("wm", "success", "filtered_bc") == "wm_fbc"
     assert method_of("rule", "dense") == "rule_dense"
+    assert method_of("wm", "success", "filtered_bc", "random") == "wm_fbc_random"
+    with pytest.raises(ValueError, match="set rl.algorithm=filtered_bc"):
+        Config(algorithm="ppo", fbc_select="random")
     with pytest.raises(ValueError, match="use reward rule or wm"):
         Config(algorithm="filtered_bc", reward="proxy")
     with pytest.raises(ValueError, match="plays every training environment"):
         Config(algorithm="filtered_bc", reward="wm", calibration_ratio=0.5)
     with pytest.raises(ValueError, match="runs no PPO"):
         Config(algorithm="filtered_bc", reward="wm", guard=True, guard_replay_rounds=1)
+
+
+def test_failures_are_kept_only_when_asked_and_play_is_the_same_either_way():
+    scripts = [[(3, True), (2, False)], [(4, False), (1, True)]]
+    plain = play(EchoPolicy(), ScriptedVecEnv(scripts), budget=12, seed=0)
+    both = play(EchoPolicy(), ScriptedVecEnv(scripts), budget=12, seed=0, keep_failures=True)
+    assert plain.failures == [] and plain.episodes == [{**e, "wall": p["wall"]} for e, p in zip(both.episodes, plain.episodes)]
+    assert len(both.failures) == sum(not e["success"] for e in both.episodes) > 0
+    assert [len(a) for _, a in both.failures] == [e["length"] for e in both.episodes if not e["success"]]
+    assert all(len(set(o["where"][:, 1])) == 1 for o, _ in both.failures)  # each one episode's steps
+
+
+def test_the_random_control_imitates_as_many_steps_as_the_successes_have_whatever_their_outcome():
+    env = ScriptedVecEnv([[(2, True), (6, False)], [(6, False), (2, True)], [(6, False)]])
+    played = play(EchoPolicy(), env, budget=60, seed=0, keep_failures=True)
+    target = sum(len(a) for _, a in played.successes)
+    assert target > 0 and played.failures
+    seen_failure = False
+    for seed in range(20):
+        picked = random_like(played, np.random.default_rng(seed))
+        steps = sum(len(a) for _, a in picked)
+        assert target <= steps < target + 6  # stops once it holds the successes' steps; the last may pass them
+        assert steps - len(picked[-1][1]) < target
+        seen_failure |= any(any(p is f for f in played.failures) for p in picked)
+    assert seen_failure  # failures are drawn too: the outcome plays no part
+    first = random_like(played, np.random.default_rng(3))
+    assert [id(p) for p in first] == [id(p) for p in random_like(played, np.random.default_rng(3))]
+    assert random_like(play(EchoPolicy(), ScriptedVecEnv([[(3, False)]]), budget=9, seed=0, keep_failures=True),
+                       np.random.default_rng(0)) == []  # no success: nothing to match, nothing imitated
