@@ -271,6 +271,30 @@ def test_filtered_bc_imitates_its_own_simulator_successes_and_ships_a_policy_eva
     assert not (ev / "extreme_actions.png").exists() and shown(store, "evaluate", *sets, "--set", "train_wm.dim=48") == ev
 
 
+def test_filtered_bcs_random_control_plays_the_same_episodes_and_imitates_as_many_steps_whatever_the_outcome(store):
+    base = ["--set", "rl.algorithm=filtered_bc", "--set", "rl.reward=wm", "--set", "rl.precision_envs=0",
+            "--set", "rl.diagnostics=none"]
+    control = [*base, "--set", "rl.fbc_select=random"]
+    runs = {}
+    for name, sets in (("success", base), ("random", control)):
+        cli(store, "run", "--profile", "toy", "--until", "rl", *sets)
+        runs[name] = shown(store, "rl", *sets)
+    assert runs["success"] != runs["random"]
+    assert [json.loads((runs[k] / "rl.json").read_text())["method"] for k in ("success", "random")] == ["wm_fbc", "wm_fbc_random"]
+    fields = ("t", "start", "length", "success", "env")
+    played = {k: [{f: e[f] for f in fields} for e in json.loads((d / "episodes.json").read_text())] for k, d in runs.items()}
+    assert played["success"] == played["random"] and played["success"]  # the same seed plays the same episodes
+    chosen, drawn = (json.loads((runs[k] / "filtered_bc.json").read_text())["rounds"][0] for k in ("success", "random"))
+    wins = sum(e["success"] for e in played["success"])
+    assert chosen["picked_episodes"] == chosen["picked_successes"] == chosen["successes"] == wins
+    assert chosen["own_pairs"] == sum(e["length"] for e in played["success"] if e["success"])
+    assert drawn["select"] == "random" and drawn["picked_successes"] <= drawn["picked_episodes"]
+    if wins:  # as many imagined steps as the successes hold; the last episode drawn may pass them (15 steps at most)
+        assert chosen["own_pairs"] <= drawn["own_pairs"] < chosen["own_pairs"] + 15
+    else:
+        assert drawn["picked_episodes"] == drawn["own_pairs"] == 0
+
+
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
     from types import SimpleNamespace
 
