@@ -7,7 +7,10 @@ same policy closed loop inside the action world model (its frames and its propri
 states are what the policy sees there, as in the rl stage's WorldModelVecEnv). Prints per
 environment: the simulator's success step, the done head's peak probability and the step where it
 first reached theta, and how far the world model's predicted TCP drifted from the simulator's
-(which diverge as soon as the two trajectories do). Writes a frame strip (third view; per
+(which diverge as soon as the two trajectories do). Ends with the done head as a judge of the policy:
+of the environments where it imagined a success, how many the policy really succeeded in, closed
+loop (a looser test than the rl stage's open-loop replay of the imagined actions), against the rate
+where it did not, within each task (``agreement``). Writes a frame strip (third view; per
 environment a simulator row over a world-model row, every ``--every`` policy steps).
 
     PYTHONPATH=. .venv/bin/python scripts/wm_closed_loop.py <collect> <tokenize> <train_wm> <sft> \\
@@ -21,6 +24,27 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+
+def agreement(summary: list[dict]) -> dict:
+    """The done head as a judge of the policy: real closed-loop success where the world model imagined
+    one (``precision``, Wilson 95%) and where it did not, overall and per task; per task too because
+    imagined successes gather in the tasks the policy masters, so the overall precision mostly echoes
+    those tasks' success rates. summary rows: {"env": "<task>/...", "sim_success_at", "wm_done_at"}."""
+    from stages.evaluate.stats import wilson
+
+    def cell(rows: list[dict]) -> dict:
+        done = [r for r in rows if r["wm_done_at"] > 0]
+        rest = [r for r in rows if r["wm_done_at"] <= 0]
+        hit = sum(r["sim_success_at"] > 0 for r in done)
+        p, lo, hi = wilson(hit, len(done)) if done else (None, None, None)
+        return {"environments": len(rows), "real": sum(r["sim_success_at"] > 0 for r in rows),
+                "imagined": len(done), "imagined_and_real": hit, "precision": p, "precision_lo": lo,
+                "precision_hi": hi, "real_where_not_imagined": sum(r["sim_success_at"] > 0 for r in rest),
+                "not_imagined": len(rest)}
+
+    tasks = sorted({r["env"].split("/")[0] for r in summary})
+    return {"all": cell(summary), **{t: cell([r for r in summary if r["env"].startswith(t + "/")]) for t in tasks}}
 
 
 def main() -> None:
@@ -101,6 +125,10 @@ def main() -> None:
     dones = sum(s["wm_done_at"] > 0 for s in summary)
     print(f"{len(summary)} {args.split.upper()} environments: simulator success {sims}, world-model done {dones}; "
           f"strip: {args.out}")
+    for name, c in agreement(summary).items():
+        p = "-" if c["precision"] is None else f"{c['precision']:.2f} [{c['precision_lo']:.2f}, {c['precision_hi']:.2f}]"
+        print(f"  {name:12s} imagined success really succeeded closed loop: {c['imagined_and_real']}/{c['imagined']} "
+              f"({p}); where none was imagined: {c['real_where_not_imagined']}/{c['not_imagined']}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,127 @@
+"""Which view's LPIPS to the goal tracks progress? The `wm` reward's dense term per camera.
+
+The rl stage's reward diagnostics (``stages.rl.train._diagnose``) score the dense term, 1 - LPIPS to
+the environment's goal frame averaged over the third view and the wrist view, along held-out
+successful episodes (frames through the tokenizer, as the world model's frames are) and report its
+Spearman correlation with progress t / T. This probe does the same on more episodes and reads the
+two views apart: third view alone, wrist view alone, and their mean (the reward as it is), per
+split and per task, with a bootstrap interval over episodes; and the mean correlation of a weighted
+mean of the two views' distances for a few wrist weights, on IND *training* episodes too (choose a
+weight there, read it on the held-out and OOD ones).
+
+    PYTHONPATH=. .venv/bin/python scripts/dense_view_probe.py <collect> <tokenize> <train_wm> <sft> <goals> \\
+        [--episodes 64] [--seed 0] [--out F.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+from scipy.stats import spearmanr
+
+VIEWS = ("third", "wrist", "both")
+WRIST_WEIGHTS = (0.0, 0.25, 0.5, 0.625, 0.75, 0.875, 1.0)  # dense = 1 - ((1 - w) LPIPS_third + w LPIPS_wrist)
+
+
+def weighted(d: dict[str, np.ndarray], w: float) -> np.ndarray:
+    return (1 - w) * d["third"] + w * d["wrist"]
+
+
+def view_correlations(d: dict[str, np.ndarray]) -> dict[str, float]:
+    """Spearman of the dense term (1 - LPIPS) with progress t / T for frames 1..T of one episode, per
+    view (``VIEWS``) and per wrist weight (keys ``w<weight>``); NaN where the distance never changes."""
+    t = len(d["both"])
+    progress = np.arange(1, t + 1) / t
+    series = {**{v: d[v] for v in VIEWS}, **{f"w{w:g}": weighted(d, w) for w in WRIST_WEIGHTS}}
+    return {k: float(spearmanr(-x, progress).statistic) if np.ptp(x) > 0 else float("nan") for k, x in series.items()}
+
+
+def episode_distances(inp, distance, episode_id: str) -> dict[str, np.ndarray]:
+    """LPIPS (T,) of frames 1..T of one episode to its environment's goal, per view and their mean."""
+    tokens = torch.as_tensor(inp.tokens(episode_id)[1:])  # (T, h, w)
+    third, wrist = inp.tok.decode(tokens)  # (T, 3, H, W) x 2 in [0, 1]
+    row = torch.full((len(tokens),), inp.env_of(episode_id), dtype=torch.long)
+    net = distance.net
+    per_view = []
+    for f, gf in zip(distance.features(third, wrist), distance.goal_feats):
+        per_view.append(net.distance_from_features(f, [g[row] for g in gf]).cpu().numpy())  # (T,)
+    return {"third": per_view[0], "wrist": per_view[1], "both": (per_view[0] + per_view[1]) / 2}
+
+
+def bootstrap(values: np.ndarray, rng, n: int = 2000) -> tuple[float, float]:
+    means = [values[rng.integers(0, len(values), len(values))].mean() for _ in range(n)]
+    return float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    for name in ("collect", "tokenize", "train_wm", "sft", "goals"):
+        ap.add_argument(name, type=Path, help=f"a committed {name} artifact directory")
+    ap.add_argument("--episodes", type=int, default=64, help="successful episodes per split (a seeded choice)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=None, help="write the per-episode correlations here (JSON)")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+
+    from stages.rl.rewards import GoalDistance
+
+    inp = _load({n: getattr(args, n) for n in ("collect", "tokenize", "train_wm", "sft", "goals")})
+    distance = GoalDistance(*inp.goal_frames())
+    rng = np.random.default_rng(args.seed)
+    report: dict = {"goal_mode": inp.goals["goal_mode"], "splits": {}}
+    for split, ids in (("train", inp.split["train"]), ("ind", inp.split["heldout"]), ("ood", inp.split["ood"])):
+        pick = inp.episodes_for(ids, inp.tasks, True, args.episodes, args.seed)
+        rows = []
+        for eid in pick:
+            d = episode_distances(inp, distance, eid)
+            row = {"episode": eid, "task": inp.meta[eid].task, "frames": len(d["both"]), **view_correlations(d)}
+            rows.append(row)
+        out = {"episodes": len(rows), "views": {}, "tasks": {}}
+        for v in VIEWS:
+            vals = np.array([r[v] for r in rows if np.isfinite(r[v])])
+            lo, hi = bootstrap(vals, rng)
+            out["views"][v] = {"spearman": float(vals.mean()), "lo": lo, "hi": hi}
+        out["wrist_weights"] = {f"{w:g}": float(np.nanmean([r[f"w{w:g}"] for r in rows])) for w in WRIST_WEIGHTS}
+        for task in sorted({r["task"] for r in rows}):
+            rs = [r for r in rows if r["task"] == task]
+            out["tasks"][task] = {"episodes": len(rs), **{v: float(np.nanmean([r[v] for r in rs])) for v in VIEWS}}
+        if split == "train":  # the weight a researcher would pick, on training episodes only
+            report["chosen_wrist_weight"] = max(WRIST_WEIGHTS, key=lambda w: out["wrist_weights"][f"{w:g}"])
+        else:  # what it gains over the reward as it is, paired over the same episodes
+            w = report["chosen_wrist_weight"]
+            diff = np.array([r[f"w{w:g}"] - r["both"] for r in rows if np.isfinite(r[f"w{w:g}"]) and np.isfinite(r["both"])])
+            lo, hi = bootstrap(diff, rng)
+            out["chosen_minus_both"] = {"weight": w, "mean": float(diff.mean()), "lo": lo, "hi": hi}
+        report["splits"][split] = {**out, "rows": rows}
+        print(f"{split} ({len(rows)} episodes): " + ", ".join(
+            f"{v} {out['views'][v]['spearman']:.3f} [{out['views'][v]['lo']:.3f}, {out['views'][v]['hi']:.3f}]" for v in VIEWS))
+        print("  wrist weight: " + " ".join(f"{w} {v:.3f}" for w, v in out["wrist_weights"].items()))
+        if "chosen_minus_both" in out:
+            c = out["chosen_minus_both"]
+            print(f"  wrist weight {c['weight']:g} (chosen on train) minus both views' mean: {c['mean']:+.3f} [{c['lo']:+.3f}, {c['hi']:+.3f}]")
+        for task, t in out["tasks"].items():
+            print(f"  {task:12s} n={t['episodes']:3d} " + " ".join(f"{v} {t[v]:+.3f}" for v in VIEWS))
+    if args.out is not None:
+        args.out.write_text(json.dumps(report, indent=1) + "\n")
+
+
+def _load(dirs: dict):
+    """RLInputs without a world model (this probe steps none), with train_wm's split and the goals."""
+    from stages.goals import load_goals
+    from stages.rl import Config
+    from stages.rl.inputs import RLInputs
+
+    ctx = SimpleNamespace(input=lambda name: dirs[name], device="cpu")
+    inp = RLInputs.load(ctx, Config(reward="rule", diagnostics="none", precision_envs=0))
+    inp.split = json.loads((dirs["train_wm"] / "split.json").read_text())
+    inp.goals = load_goals(dirs["goals"])
+    inp.goal_index = {env_id: i for i, env_id in enumerate(inp.goals["env_ids"])}
+    return inp
+
+
+if __name__ == "__main__":
+    main()
