@@ -21,7 +21,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
-from scipy.stats import spearmanr
 
 VIEWS = ("third", "wrist", "both")
 WRIST_WEIGHTS = (0.0, 0.25, 0.5, 0.625, 0.75, 0.875, 1.0)  # dense = 1 - ((1 - w) LPIPS_third + w LPIPS_wrist)
@@ -33,11 +32,14 @@ def weighted(d: dict[str, np.ndarray], w: float) -> np.ndarray:
 
 def view_correlations(d: dict[str, np.ndarray]) -> dict[str, float]:
     """Spearman of the dense term (1 - LPIPS) with progress t / T for frames 1..T of one episode, per
-    view (``VIEWS``) and per wrist weight (keys ``w<weight>``); NaN where the distance never changes."""
+    view (``VIEWS``) and per wrist weight (keys ``w<weight>``); NaN where the distance never changes
+    or the episode has under 3 frames (as the rl stage's diagnostics skip them)."""
+    from stages.rl.diagnostics import progress_correlation  # the rl stage's own reading, one episode here
+
     t = len(d["both"])
-    progress = np.arange(1, t + 1) / t
+    progress, episode = np.arange(1, t + 1) / t, np.zeros(t, dtype=int)
     series = {**{v: d[v] for v in VIEWS}, **{f"w{w:g}": weighted(d, w) for w in WRIST_WEIGHTS}}
-    return {k: float(spearmanr(-x, progress).statistic) if np.ptp(x) > 0 else float("nan") for k, x in series.items()}
+    return {k: progress_correlation(1.0 - x, progress, episode) for k, x in series.items()}
 
 
 def episode_distances(inp, distance, episode_id: str) -> dict[str, np.ndarray]:
