@@ -102,7 +102,8 @@ def play(args, player_dir: Path, out: Path, budget: int, seed_offset: int) -> No
     info = read_policy_json(args.sft)
     split = json.loads((args.tokenize / "split.json").read_text())
     envs = training_environments(list_environments(args.collect), split["train"], list(info["tasks"]))
-    obs_fn = ObservationFn(load_tokenizer(args.tokenize, "cpu"), json.loads((args.sft / "text_embeddings.json").read_text()))
+    obs_fn = ObservationFn.for_policy(load_tokenizer(args.tokenize, "cpu"),
+                                      json.loads((args.sft / "text_embeddings.json").read_text()), info)
     sim, specs = sim_over(args.collect, obs_fn, envs, max_steps=args.max_steps, frame_skip=int(info["frame_skip"]),
                           seed=args.seed)
     policy = load_policy(player_dir / POLICY_FILE, "cpu")
@@ -187,7 +188,8 @@ def clone(args, rollout_dirs: list[Path], out: Path) -> None:
     overrides = {k: v for k, v in (("epochs", args.epochs), ("lr", args.lr), ("keep", args.keep)) if v is not None}
     recipe = recipe.model_copy(update=overrides)
     info = read_policy_json(args.sft)
-    obs_fn = ObservationFn(load_tokenizer(args.tokenize, "cpu"), json.loads((args.sft / "text_embeddings.json").read_text()))
+    obs_fn = ObservationFn.for_policy(load_tokenizer(args.tokenize, "cpu"),
+                                      json.loads((args.sft / "text_embeddings.json").read_text()), info)
     demos, val = demonstration_pairs(args.sft, info, Dataset(args.collect), TokenStore(args.tokenize), obs_fn)
     own_obs, own_act, n_own = successes(rollout_dirs, args.imitate)
     train = joined(demos, [(own_obs, own_act)])

@@ -43,7 +43,7 @@ def load_check(collect: Path, tokenize: Path, train_wm: Path, sft: Path, policy_
     if wm_net is not None and wm_play is not None:
         raise SystemExit("--wm-net and --wm-play each replace the world model; give one")
     tok = load_tokenizer(tokenize, "cpu")
-    obs_fn = ObservationFn(tok, json.loads((sft / TEXT_EMBEDDINGS).read_text()))
+    obs_fn = ObservationFn.for_policy(tok, json.loads((sft / TEXT_EMBEDDINGS).read_text()), read_policy_json(sft))
     wm = load_world_model(train_wm, "action", "cpu", decode_steps=decode_steps, temperature=temperature)
     if wm_play is not None:
         from stages.wm_play import action_world_model

@@ -70,7 +70,7 @@ def main() -> None:
     ids = json.loads((args.sft / "split.json").read_text())[args.part]
     if not ids:
         raise SystemExit(f"{args.sft}: no {args.part} demonstrations (sft.val_fraction 0?); try --part train")
-    obs_fn = ObservationFn(tok, json.loads((args.sft / "text_embeddings.json").read_text()))
+    obs_fn = ObservationFn.for_policy(tok, json.loads((args.sft / "text_embeddings.json").read_text()), info)
     dm = info["demonstrations"]
     demos = [load_demo(ds, store, i, info["frame_skip"], dm["retime_min_move"], dm["retime_max_gap"]) for i in ids]
     obs, demo_actions = pairs(demos, obs_fn)  # obs batch, (M, 7)

@@ -94,7 +94,7 @@ def main() -> None:
             roll = wm.rollout(1)
             roll.reset(tokens)
             proprio = torch.as_tensor(proprio0[None])  # (1, 10)
-            wobs = obs_fn.from_tokens(tokens, proprio.numpy(), [sim.instruction])
+            wobs = obs_fn.from_tokens(tokens, proprio.numpy(), [sim.instruction], first=tokens)
             wm_tokens, wm_tcp, peak, done_at = [tokens[0]], [proprio[0, :3].numpy().copy()], 0.0, -1
             for t in range(args.steps):
                 a = torch.as_tensor(act(policy, wobs))
@@ -107,7 +107,7 @@ def main() -> None:
                     done_at = t + 1
                 wm_tokens.append(out.tokens[0])
                 wm_tcp.append(proprio[0, :3].numpy().copy())
-                wobs = obs_fn.from_tokens(out.tokens, proprio.numpy(), [sim.instruction])
+                wobs = obs_fn.from_tokens(out.tokens, proprio.numpy(), [sim.instruction], first=tokens)
             n = min(len(sim_tcp), len(wm_tcp))
             drift = [float(np.linalg.norm(wm_tcp[t] - sim_tcp[t]) * 10) for t in range(n)]  # dm -> cm
             summary.append({"env": spec.key, "sim_success_at": sim_success_at, "wm_done_at": done_at,

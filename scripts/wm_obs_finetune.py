@@ -35,7 +35,7 @@ def imagined_pairs(wm, obs_fn, demos: list, horizon: int, every: int, batch: int
     steps under the recorded actions, paired with the recorded action at s + k.
     """
     starts = [(d, s) for d in demos for s in range(0, len(d.actions) - 1, every)]
-    tokens, proprio, instr, acts = [], [], [], []
+    tokens, proprio, instr, acts, first = [], [], [], [], []
     for i in range(0, len(starts), batch):
         chunk = starts[i: i + batch]
         n = len(chunk)
@@ -52,8 +52,9 @@ def imagined_pairs(wm, obs_fn, demos: list, horizon: int, every: int, batch: int
             for j in live:
                 d, s = chunk[j]
                 tokens.append(out.tokens[j].numpy()), proprio.append(p[j].numpy()), instr.append(d.instruction)
+                first.append(d.tokens[0])
                 acts.append(d.actions[s + k + 1])
-    obs = obs_fn.from_tokens(np.stack(tokens), np.stack(proprio).astype(np.float32), instr)
+    obs = obs_fn.from_tokens(np.stack(tokens), np.stack(proprio).astype(np.float32), instr, first=np.stack(first))
     return obs, np.stack(acts).astype(np.float32)
 
 
@@ -87,7 +88,8 @@ def main() -> None:
     cfg = json.loads((args.sft / "manifest.json").read_text())["key_inputs"]["config"]
     split = json.loads((args.sft / "split.json").read_text())
     ds, store = Dataset(args.collect), TokenStore(args.tokenize)
-    obs_fn = ObservationFn(load_tokenizer(args.tokenize, "cpu"), json.loads((args.sft / TEXT_EMBEDDINGS).read_text()))
+    obs_fn = ObservationFn.for_policy(load_tokenizer(args.tokenize, "cpu"), json.loads((args.sft / TEXT_EMBEDDINGS).read_text()),
+                                      json.loads((args.sft / "policy.json").read_text()))
     wm = load_world_model(args.train_wm, "action", "cpu")
     if args.wm_play is not None:
         from stages.wm_play import action_world_model

@@ -145,8 +145,9 @@ def sft_play(args, frame_skip: int) -> list:
     split = json.loads((args.train_wm / "split.json").read_text())
     tasks = list(read_policy_json(args.play_sft)["tasks"])
     picked = pick_environments(training_environments(list_environments(args.collect), split["train"], tasks), pc.episodes)
-    obs_fn = ObservationFn(load_tokenizer(args.tokenize, "cpu"),
-                           json.loads((args.train_wm / "text_embeddings.json").read_text()))
+    obs_fn = ObservationFn.for_policy(load_tokenizer(args.tokenize, "cpu"),
+                                      json.loads((args.train_wm / "text_embeddings.json").read_text()),
+                                      read_policy_json(args.play_sft))
     sim, specs = sim_over(args.collect, obs_fn, picked, max_steps=pc.max_episode_steps, frame_skip=frame_skip, seed=pc.seed)
     policy = load_policy(args.play_sft / POLICY_FILE, "cpu")
     policy.set_training_mode(False)

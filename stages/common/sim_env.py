@@ -66,6 +66,8 @@ class SimTaskEnv(gym.Env):
         self.instruction = ""
         self.keep_frames = keep_frames
         self.frames: list[tuple[np.ndarray, np.ndarray]] = []  # (third, wrist) of every control step when kept
+        self.first_tokens = None  # (1, h, w) the episode's first frame's tokens (the policy may observe them)
+        self.tokens = None  # (1, h, w) the last observed frame's tokens
 
     def _env_for(self, spec: SimSpec) -> gym.Env:
         from stages.collect.sim import make_task_env
@@ -80,9 +82,14 @@ class SimTaskEnv(gym.Env):
         self._envs[spec.key] = env
         return env
 
-    def _observe(self, raw: dict) -> dict[str, np.ndarray]:
-        obs = self.obs_fn.from_views(raw["third"][None], raw["wrist"][None], proprio_from_sim_state(raw["state"]),
-                                     [self.instruction])
+    def _observe(self, raw: dict, first: bool = False) -> dict[str, np.ndarray]:
+        """The policy's observation of the rendered views; ``first``: they are the episode's first frame."""
+        tokens = self.obs_fn.tok.encode(raw["third"][None], raw["wrist"][None]).cpu()  # (1, h, w)
+        self.tokens = tokens
+        if first:
+            self.first_tokens = tokens
+        obs = self.obs_fn.from_tokens(tokens, proprio_from_sim_state(raw["state"]), [self.instruction],
+                                      first=self.first_tokens)
         return index_obs(obs, 0)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -96,7 +103,7 @@ class SimTaskEnv(gym.Env):
         raw, info = self.env.reset(seed=int(self.rng.integers(2**31 - 1)))
         self.t = 0
         self.frames = [(raw["third"], raw["wrist"])] if self.keep_frames else []
-        return self._observe(raw), {"success": bool(info["success"]), "env": spec.key}
+        return self._observe(raw, first=True), {"success": bool(info["success"]), "env": spec.key}
 
     def step(self, action):
         a = np.asarray(action, dtype=np.float32).reshape(-1)

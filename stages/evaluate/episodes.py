@@ -24,6 +24,7 @@ class Job:
     robot_mesh: str = "lowpoly"
     record: list[int] = field(default_factory=list)  # seeds whose third-view frames are returned
     device: str = "cpu"
+    frame: str = "current"  # which frame's tokens the policy reads (sft.frame, its policy.json)
 
 
 _SIMS: dict = {}  # per worker process: (tokenizer, text, camera, repeat, horizon) -> SimTaskEnv, reused across jobs
@@ -46,11 +47,11 @@ def _sim_for(job: Job):
     from stages.tokenize.tokenizer import load_tokenizer
 
     text_id = hashlib.blake2b(json.dumps(job.text_embeddings, sort_keys=True).encode(), digest_size=8).hexdigest()
-    key = (job.tokenize_dir, text_id, job.image_size, job.robot_mesh, job.action_repeat, job.max_steps, job.device)
+    key = (job.tokenize_dir, text_id, job.image_size, job.robot_mesh, job.action_repeat, job.max_steps, job.device, job.frame)
     if key not in _SIMS:
         close_sims()
         torch.set_num_threads(1)
-        obs_fn = ObservationFn(load_tokenizer(job.tokenize_dir, job.device), job.text_embeddings)
+        obs_fn = ObservationFn(load_tokenizer(job.tokenize_dir, job.device), job.text_embeddings, job.frame)
         _SIMS[key] = SimTaskEnv([_spec(job)], obs_fn, max_steps=job.max_steps, image_size=job.image_size,
                                 robot_mesh=job.robot_mesh, action_repeat=job.action_repeat)
     return _SIMS[key]

@@ -54,16 +54,19 @@ def sim_settings(ctx, cfg) -> tuple[int, str]:
 def _spread(policy: str, path: Path, task: str, split: str, scenes: list[dict], n: int, seed0: int, ctx, cfg,
             text: dict, record: bool, repeat: int) -> list[Job]:
     """``n`` episodes round-robin over ``scenes``, one Job per scene; ``repeat`` = control steps per policy step."""
+    from stages.sft import read_policy_json
+
     seeds: dict[str, list[int]] = {}
     for i in range(n):
         seeds.setdefault(scenes[i % len(scenes)]["scene_id"], []).append(seed0 + i)
     by_id = {s["scene_id"]: s for s in scenes}
     image_size, robot_mesh = sim_settings(ctx, cfg)
+    frame = read_policy_json(ctx.input("sft")).get("frame", "current")  # the rl policy observes as its SFT start did
     jobs = []
     for k, (sid, ss) in enumerate(sorted(seeds.items())):
         jobs.append(Job(policy, str(path), str(ctx.input("tokenize")), text, task, by_id[sid], split, ss,
                         cfg.max_steps, repeat, image_size, robot_mesh,
-                        record=[ss[0]] if record and k == 0 else [], device=ctx.device))
+                        record=[ss[0]] if record and k == 0 else [], device=ctx.device, frame=frame))
     return jobs
 
 

@@ -76,14 +76,14 @@ def closed_loop(policy, wm, obs_fn, tokens: torch.Tensor, proprio0: np.ndarray, 
     roll.reset(tokens.to(wm.device))
     has_head = getattr(wm, "proprio_head", None) is not None
     proprio = torch.as_tensor(np.asarray(proprio0))  # (N, 10) on the CPU (the head's output is brought back)
-    obs = obs_fn.from_tokens(tokens, proprio.numpy(), instructions)
+    obs = obs_fn.from_tokens(tokens, proprio.numpy(), instructions, first=tokens)
     for t in range(steps):
         a = torch.as_tensor(act(policy, obs, deterministic=True), device=wm.device)
         a = torch.minimum(torch.maximum(a, wm.net.action_low), wm.net.action_high)  # what the WM sees (it clips)
         out = roll.step(a)
         if has_head:
             proprio = wm.next_proprio(proprio, a, out.tokens).cpu()
-        obs = obs_fn.from_tokens(out.tokens, proprio.numpy(), instructions)
+        obs = obs_fn.from_tokens(out.tokens, proprio.numpy(), instructions, first=tokens)
         yield ImaginedStep(t, a.cpu().numpy(), out, proprio.numpy(), obs)
 
 
@@ -118,7 +118,7 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     confirm = np.ones((n, steps), np.float32)  # (N, T) the guard ensemble's mean probability (1 without a guard)
     has_head = getattr(wm, "proprio_head", None) is not None  # without one the arm is not predicted: no tcp_error
     tcp = np.zeros((n, steps, 3), np.float32)  # (N, T, 3) imagined TCP position after each step
-    first_codes = obs_fn.from_tokens(tokens, np.stack(proprio0), instructions)["codes"] > 0  # (N, C, h, w) bool
+    first_codes = tok.codes(tokens).cpu().numpy() > 0  # (N, bits, h, w) bool: the frames' bits, whatever the policy reads
     codes = np.zeros((n, steps) + first_codes.shape[1:], bool)  # (N, T, C, h, w) the imagined frames' bits
     for s in closed_loop(policy, wm, obs_fn, tokens, np.stack(proprio0), instructions, steps):  # the whole horizon,
         t = s.t  # so stricter thresholds can be read off later
@@ -131,7 +131,7 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
             record.setdefault("tokens", [tokens]).append(s.out.tokens.cpu().long())
             record.setdefault("hidden", []).append(s.out.hidden.float().cpu())
             record.setdefault("proprio", []).append(s.proprio.copy())
-        codes[:, t] = s.obs["codes"] > 0
+        codes[:, t] = tok.codes(s.out.tokens).cpu().numpy() > 0
 
     if record is not None:
         record["tokens"] = torch.stack(record["tokens"], 1)  # (N, T+1, h, w)
@@ -153,7 +153,7 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
                 record["replay_proprio"][-1].append(np.asarray(real["proprio"], np.float32))
             if has_head:
                 err.append(float(np.linalg.norm(np.asarray(real["proprio"])[:3] - tcp[i, t])) / POSITION_SCALE)  # dm -> m
-            seen = np.asarray(real["codes"]) > 0  # (C, h, w)
+            seen = tok.codes(sim.tokens)[0].cpu().numpy() > 0  # (bits, h, w) the replayed frame's
             acc.append(token_match(codes[i, t], seen))
             copy.append(token_match(first_codes[i], seen))
             if info["success"]:

@@ -54,7 +54,7 @@ class RLInputs:
             text = json.loads((ctx.input("sft") / SFT_TEXT_EMBEDDINGS).read_text())
             return cls(tok=tok, store=TokenStore(ctx.input("tokenize")), dataset=ds,
                        meta={m.episode_id: m for m in ds.episodes}, split=split, envs=envs, goal_index={}, goals=None,
-                       wm=None, obs_fn=ObservationFn(tok, text), device=ctx.device, sft_policy=sft_policy,
+                       wm=None, obs_fn=ObservationFn.for_policy(tok, text, sft_info), device=ctx.device, sft_policy=sft_policy,
                        sft_info=sft_info)
         wm_dir = ctx.input("train_wm")
         if "wm_play" not in unread_needs(cfg):
@@ -76,7 +76,7 @@ class RLInputs:
         return cls(tok=tok, store=TokenStore(ctx.input("tokenize")), dataset=ds,
                    meta={m.episode_id: m for m in ds.episodes},
                    split=json.loads((wm_dir / "split.json").read_text()), envs=envs, goal_index=goal_index,
-                   goals=goals, wm=wm, obs_fn=ObservationFn(tok, text), device=ctx.device,
+                   goals=goals, wm=wm, obs_fn=ObservationFn.for_policy(tok, text, sft_info), device=ctx.device,
                    sft_policy=sft_policy, sft_info=sft_info)
 
     @property

@@ -94,7 +94,9 @@ class WorldModelVecEnv(VecEnv):
         return batch
 
     def _obs(self, tokens: torch.Tensor) -> dict[str, np.ndarray]:
-        return self.obs_fn.from_tokens(tokens.cpu(), self.proprio.cpu().numpy(), [s.instruction for s in self.current])
+        first = np.stack([s.tokens for s in self.current])  # (B, h, w) each env's real first frame
+        return self.obs_fn.from_tokens(tokens.cpu(), self.proprio.cpu().numpy(), [s.instruction for s in self.current],
+                                       first=first)
 
     def _start_proprio(self, rows: np.ndarray) -> None:
         self.proprio[torch.as_tensor(rows)] = torch.as_tensor(

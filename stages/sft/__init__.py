@@ -15,7 +15,7 @@ Inputs:
 
 Outputs:
     sft_policy.pt        the behaviour-cloned policy (``stages.sft.policy.load_policy``)
-    policy.json          what the policy is and needs: frame_skip, tasks, observation layout, noise,
+    policy.json          what the policy is and needs: frame_skip, tasks, observation layout (and which frame), noise,
                          how its demonstrations were read and weighed (rl.demo_bc_batches reuses it)
     text_embeddings.json MiniLM embedding of every instruction of the collect artifact
     split.json           demonstration episodes trained on and held out (early stopping, R^2)
@@ -79,6 +79,9 @@ class Config(BaseModel):
     features_dim: int = Field(256, ge=8, description="width of the observation features")
     net_arch: int = Field(256, ge=8, description="width of the two hidden layers of the actor and of the critic")
     use_proprio: bool = Field(True, description="the policy reads proprioception (False: the ablation without it)")
+    frame: Literal["current", "first", "both"] = Field(
+        "current", description="whose tokens the policy reads: the frame now, the episode's first (real) frame, or both "
+        "(stages/sft/observation.py; docs/sft.md)")
     normalize_actions: bool = Field(True, description="per-dimension action normalisation in the loss and network "
                                     "(False: raw actions, where the +-1 gripper dominates the MSE)")
     noise_scale: float = Field(1.0, gt=0, description="PPO's initial action std = noise_scale x held-out residual std")
@@ -117,7 +120,7 @@ def run(ctx) -> None:
     instructions = sorted({m.instruction for m in ds.episodes})
     text = {s: e.tolist() for s, e in zip(instructions, encode_texts(instructions))}
     (ctx.out / TEXT_EMBEDDINGS).write_text(json.dumps(text) + "\n")
-    obs_fn = ObservationFn(tok, text)
+    obs_fn = ObservationFn(tok, text, cfg.frame)
 
     pool = set(json.loads((ctx.input("tokenize") / "split.json").read_text())["train"])
     ids = sorted(m.episode_id for m in ds.episodes
@@ -167,6 +170,7 @@ def run(ctx) -> None:
         curves.series("sft/loss_heldout", hist["val"])
 
     info = {"frame_skip": cfg.frame_skip, "tasks": list(cfg.tasks), "observation": sorted(obs_fn.space.spaces),
+            "frame": cfg.frame,
             "grid": list(tok.grid), "bits": tok.bits, "action_loc": loc.tolist(), "action_scale": scale.tolist(),
             "initial_action_std": noise.tolist(),
             # how the demonstrations were read and weighed: rl's demonstration anchor (rl.demo_bc_batches) reuses it

@@ -83,7 +83,8 @@ def pairs(demos: list[Demo], obs_fn) -> tuple[dict[str, np.ndarray], np.ndarray]
     parts, acts = [], []
     for d in demos:
         n = len(d.actions)
-        parts.append(obs_fn.from_tokens(d.tokens[:n], d.proprio[:n], [d.instruction] * n))
+        parts.append(obs_fn.from_tokens(d.tokens[:n], d.proprio[:n], [d.instruction] * n,
+                                        first=np.repeat(d.tokens[:1], n, axis=0)))
         acts.append(d.actions)
     if not parts:
         raise ValueError("no demonstration pairs")

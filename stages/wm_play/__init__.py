@@ -113,8 +113,8 @@ def _play_and_finetune(ctx, cfg: Config) -> dict:
         t_play = json.loads((saved / "seconds.json").read_text())
         ctx.log.info("wm_play: the play (%d episodes, %.0f s) resumed from an earlier run's checkpoint", len(play), t_play)
     else:
-        obs_fn = ObservationFn(load_tokenizer(ctx.input("tokenize"), ctx.device),
-                               json.loads((wm_dir / TEXT_EMBEDDINGS).read_text()))
+        obs_fn = ObservationFn.for_policy(load_tokenizer(ctx.input("tokenize"), ctx.device),
+                                          json.loads((wm_dir / TEXT_EMBEDDINGS).read_text()), sft_info)
         sim, specs = sim_over(ctx.input("collect"), obs_fn, picked, max_steps=cfg.max_episode_steps,
                               frame_skip=wm.spec.frame_skip, seed=cfg.seed)
         policy = load_policy(ctx.input("sft") / POLICY_FILE, ctx.device)

@@ -17,21 +17,20 @@ def play_episodes(policy, sim, specs: list, seeds: list[int], max_steps: int, pr
     tokens of the observed frames (T+1, N), executed actions (T, 7), success after each step (the
     first frame 0), proprioception (T+1, 10); kind ``play``."""
     from stages.sft.policy import act
-    from stages.tokenize.lfq import codes_to_tokens
     from stages.train_wm.data import Episode
 
     out = []
     for i, (spec, seed) in enumerate(zip(specs, seeds)):
         obs, _ = sim.reset(seed=seed, options={"spec": spec})
-        codes, proprio, actions, done = [obs["codes"]], [obs["proprio"]], [], [0.0]
+        frames, proprio, actions, done = [sim.tokens[0]], [obs["proprio"]], [], [0.0]  # tokens (h, w) of each frame
         for _ in range(max_steps):
             a = act(policy, {k: v[None] for k, v in obs.items()})[0]
             obs, _, term, trunc, info = sim.step(a)
-            codes.append(obs["codes"]), proprio.append(obs["proprio"]), actions.append(a)
+            frames.append(sim.tokens[0]), proprio.append(obs["proprio"]), actions.append(a)
             done.append(float(info["success"]))
             if term or trunc:
                 break
-        tokens = codes_to_tokens(torch.as_tensor(np.stack(codes))).reshape(len(codes), -1).numpy()  # (T+1, N)
+        tokens = torch.stack(frames).reshape(len(frames), -1).numpy()  # (T+1, N)
         out.append(Episode(f"play-{i}", sim.instruction, "ind", tokens.astype(np.int64),
                            np.stack(actions).astype(np.float32), np.asarray(done, np.float32),
                            np.stack(proprio).astype(np.float32), "play"))

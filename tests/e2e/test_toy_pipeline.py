@@ -295,6 +295,28 @@ def test_filtered_bcs_random_control_plays_the_same_episodes_and_imitates_as_man
         assert drawn["picked_episodes"] == drawn["own_pairs"] == 0
 
 
+def test_a_policy_reading_both_frames_plays_learns_in_the_world_model_and_is_evaluated(store):
+    """``sft.frame=both``: the SFT policy, its play, filtered BC inside the world model (with the
+    imagined-success check) and the evaluation all observe the frame now and the episode's first."""
+    sets = ["--set", "sft.frame=both", "--set", "rl.algorithm=filtered_bc", "--set", "rl.reward=wm",
+            "--set", "rl.diagnostics=none", "--set", "evaluate.world_model_figure=false"]
+    acts = actions(cli(store, "run", "--profile", "toy", "--until", "evaluate", *sets))
+    assert all(acts[(s, "ran")] == 1 for s in ("sft", "wm_play", "rl", "evaluate")), acts
+    assert all(acts[(s, "cached")] == 1 for s in ("collect", "tokenize", "train_wm", "goals")), acts
+    sft = shown(store, "sft", *sets)
+    info = json.loads((sft / "policy.json").read_text())
+    assert info["frame"] == "both" and json.loads((shown(store, "sft") / "policy.json").read_text())["frame"] == "current"
+    from stages.sft.policy import POLICY_FILE, load_policy
+
+    rl = shown(store, "rl", *sets)
+    for path in (sft / POLICY_FILE, rl / "policy.zip"):  # the fine-tuned policy observes as its SFT start did
+        assert load_policy(path).observation_space["codes"].shape[0] == 2 * info["bits"]
+    metrics = json.loads((rl / "metrics.json").read_text())
+    assert "imagined/ind/precision" in metrics and "imagined/ood/precision" in metrics
+    results = [json.loads(x) for x in (shown(store, "evaluate", *sets) / "results.jsonl").read_text().splitlines()]
+    assert {r["policy"] for r in results} >= {"sft", "ppo"} and {r["split"] for r in results} >= {"ind", "ood"}
+
+
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
     from types import SimpleNamespace
 

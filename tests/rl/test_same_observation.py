@@ -102,3 +102,35 @@ def test_unrendered_repeats_reach_the_same_state_as_rendered_ones():
     finally:
         full.close()
         fast.close()
+
+
+def test_sim_env_keeps_the_episode_first_frame_where_the_policy_reads_it():
+    """``sft.frame=both``: the second half of the codes is the first frame's, step after step, and a
+    new episode brings its own first frame."""
+    from stages.collect.sim import default_catalog
+    from stages.common.sim_env import SimSpec, SimTaskEnv
+    from stages.sft.observation import ObservationFn
+    from tests.rl.tiny import text_embeddings
+
+    tok = tiny_tokenizer()
+    scene = next(s for s in default_catalog().values() if s.split == "ind")
+    fn = ObservationFn(tok, text_embeddings([]), "both")
+    sim = SimTaskEnv([SimSpec("push", scene.to_dict())], fn, max_steps=3, keep_frames=True)
+    try:
+        obs0, _ = sim.reset(seed=0)
+        third, wrist = sim.frames[0]
+        first = tok.codes(tok.encode(third[None], wrist[None]))[0].numpy()  # (bits, h, w)
+        np.testing.assert_array_equal(obs0["codes"][: tok.bits], first)
+        np.testing.assert_array_equal(obs0["codes"][tok.bits:], first)
+        down = np.zeros(7, np.float32)
+        down[2] = -1.0
+        for _ in range(2):
+            obs, *_ = sim.step(down)
+            now = tok.codes(tok.encode(*(f[None] for f in sim.frames[-1])))[0].numpy()
+            np.testing.assert_array_equal(obs["codes"][: tok.bits], now)
+            np.testing.assert_array_equal(obs["codes"][tok.bits:], first)
+        assert not np.array_equal(now, first)  # the arm moved: the two halves differ now
+        obs1, _ = sim.reset(seed=1)
+        np.testing.assert_array_equal(obs1["codes"][tok.bits:], obs1["codes"][: tok.bits])
+    finally:
+        sim.close()
