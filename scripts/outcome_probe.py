@@ -39,12 +39,10 @@ class OutcomeNet(nn.Module):
         return self.head(torch.cat([h, ctx[:, None].expand(-1, h.shape[1], -1)], -1)).squeeze(-1)
 
 
-def episodes(collect: Path, tokenize: Path, frame_skip: int, ids: list[str], tok, text: dict) -> list[dict]:
-    from stages.collect.dataset import Dataset
+def episodes(ds, store, frame_skip: int, ids: list[str], tok, text: dict) -> list[dict]:
+    """Collected episodes ``ids`` (a ``Dataset`` and its ``TokenStore``) at the policy's step."""
     from stages.common.proprio import proprio_from_state
-    from stages.tokenize.store import TokenStore
 
-    ds, store = Dataset(collect), TokenStore(tokenize)
     out = []
     for eid in ids:
         m, st = ds.meta(eid), ds.load_states(eid)
@@ -105,16 +103,11 @@ def peak_probs(net: OutcomeNet, eps: list[dict]) -> np.ndarray:
     return np.concatenate(out)
 
 
-def auroc(score: np.ndarray, y: np.ndarray) -> float:
-    pos, neg = score[y], score[~y]
-    if not len(pos) or not len(neg):
-        return float("nan")
-    return float((pos[:, None] > neg[None]).mean() + 0.5 * (pos[:, None] == neg[None]).mean())
-
-
 def report(name: str, p: np.ndarray, eps: list[dict]) -> None:
+    from stages.train_wm.evaluate import auroc
+
     y = np.array([e["success"] for e in eps])
-    print(f"{name}: {len(eps)} episodes ({y.sum()} successes), AUROC of the peak {auroc(p, y):.3f}")
+    print(f"{name}: {len(eps)} episodes ({y.sum()} successes), AUROC of the peak {auroc(p, y.astype(float)):.3f}")
     for th in (0.5, 0.7, 0.9):
         fire = p >= th
         prec = (fire & y).sum() / max(fire.sum(), 1)
@@ -137,18 +130,18 @@ def main() -> None:
     torch.set_num_threads(1)
 
     from stages.collect.dataset import Dataset
+    from stages.sft import read_policy_json
+    from stages.tokenize.store import TokenStore
     from stages.tokenize.tokenizer import load_tokenizer
 
-    info = json.loads((args.sft / "policy.json").read_text())
+    info = read_policy_json(args.sft)
     text = json.loads((args.sft / "text_embeddings.json").read_text())
     tok = load_tokenizer(args.tokenize, "cpu")
     split = json.loads((args.tokenize / "split.json").read_text())
-    ds = Dataset(args.collect)
+    ds, store = Dataset(args.collect), TokenStore(args.tokenize)
     ood = [m.episode_id for m in ds.episodes if m.split == "ood"]
     fs = int(info["frame_skip"])
-    train = episodes(args.collect, args.tokenize, fs, split["train"], tok, text)
-    held = episodes(args.collect, args.tokenize, fs, split["heldout"], tok, text)
-    oods = episodes(args.collect, args.tokenize, fs, ood, tok, text)
+    train, held, oods = (episodes(ds, store, fs, ids, tok, text) for ids in (split["train"], split["heldout"], ood))
     net = OutcomeNet(tok.bits)
     fit(net, train, args.epochs, args.seed)
     for name, eps in (("train", train), ("held-out IND", held), ("OOD", oods)):
