@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 VIEWS = ("third", "wrist", "both")
+RELATIVE = ("ratio", "diff")  # relative(): the distance to the start read too
 WRIST_WEIGHTS = (0.0, 0.25, 0.5, 0.625, 0.75, 0.875, 1.0)  # dense = 1 - ((1 - w) LPIPS_third + w LPIPS_wrist)
 
 
@@ -39,19 +40,32 @@ def view_correlations(d: dict[str, np.ndarray]) -> dict[str, float]:
     t = len(d["both"])
     progress, episode = np.arange(1, t + 1) / t, np.zeros(t, dtype=int)
     series = {**{v: d[v] for v in VIEWS}, **{f"w{w:g}": weighted(d, w) for w in WRIST_WEIGHTS}}
-    return {k: progress_correlation(1.0 - x, progress, episode) for k, x in series.items()}
+    out = {k: progress_correlation(1.0 - x, progress, episode) for k, x in series.items()}
+    for k, x in relative(d).items():
+        out[k] = progress_correlation(x, progress, episode)
+    return out
+
+
+def relative(d: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Dense terms that also read the distance to the episode's start (higher = further along)."""
+    s, g = d["start"], d["both"]
+    return {"ratio": s / np.maximum(s + g, 1e-8), "diff": s - g}
 
 
 def episode_distances(inp, distance, episode_id: str) -> dict[str, np.ndarray]:
-    """LPIPS (T,) of frames 1..T of one episode to its environment's goal, per view and their mean."""
-    tokens = torch.as_tensor(inp.tokens(episode_id)[1:])  # (T, h, w)
-    third, wrist = inp.tok.decode(tokens)  # (T, 3, H, W) x 2 in [0, 1]
-    row = torch.full((len(tokens),), inp.env_of(episode_id), dtype=torch.long)
+    """LPIPS (T,) of frames 1..T of one episode to its environment's goal, per view and their mean;
+    ``start``: both views' mean LPIPS of frames 1..T to the episode's first frame."""
+    tokens = torch.as_tensor(inp.tokens(episode_id))  # (T+1, h, w)
+    third, wrist = inp.tok.decode(tokens)  # (T+1, 3, H, W) x 2 in [0, 1]
+    row = torch.full((len(tokens) - 1,), inp.env_of(episode_id), dtype=torch.long)
     net = distance.net
-    per_view = []
+    per_view, to_start = [], []
     for f, gf in zip(distance.features(third, wrist), distance.goal_feats):
-        per_view.append(net.distance_from_features(f, [g[row] for g in gf]).cpu().numpy())  # (T,)
-    return {"third": per_view[0], "wrist": per_view[1], "both": (per_view[0] + per_view[1]) / 2}
+        now, first = [x[1:] for x in f], [x[:1].expand_as(x[1:]) for x in f]
+        per_view.append(net.distance_from_features(now, [g[row] for g in gf]).cpu().numpy())  # (T,)
+        to_start.append(net.distance_from_features(now, first).cpu().numpy())  # (T,)
+    return {"third": per_view[0], "wrist": per_view[1], "both": (per_view[0] + per_view[1]) / 2,
+            "start": (to_start[0] + to_start[1]) / 2}
 
 
 def bootstrap(values: np.ndarray, rng, n: int = 2000) -> tuple[float, float]:
@@ -83,14 +97,14 @@ def main() -> None:
             row = {"episode": eid, "task": inp.meta[eid].task, "frames": len(d["both"]), **view_correlations(d)}
             rows.append(row)
         out = {"episodes": len(rows), "views": {}, "tasks": {}}
-        for v in VIEWS:
+        for v in VIEWS + RELATIVE:
             vals = np.array([r[v] for r in rows if np.isfinite(r[v])])
             lo, hi = bootstrap(vals, rng)
             out["views"][v] = {"spearman": float(vals.mean()), "lo": lo, "hi": hi}
         out["wrist_weights"] = {f"{w:g}": float(np.nanmean([r[f"w{w:g}"] for r in rows])) for w in WRIST_WEIGHTS}
         for task in sorted({r["task"] for r in rows}):
             rs = [r for r in rows if r["task"] == task]
-            out["tasks"][task] = {"episodes": len(rs), **{v: float(np.nanmean([r[v] for r in rs])) for v in VIEWS}}
+            out["tasks"][task] = {"episodes": len(rs), **{v: float(np.nanmean([r[v] for r in rs])) for v in VIEWS + RELATIVE}}
         if split == "train":  # the weight a researcher would pick, on training episodes only
             report["chosen_wrist_weight"] = max(WRIST_WEIGHTS, key=lambda w: out["wrist_weights"][f"{w:g}"])
         else:  # what it gains over the reward as it is, paired over the same episodes
@@ -98,17 +112,49 @@ def main() -> None:
             diff = np.array([r[f"w{w:g}"] - r["both"] for r in rows if np.isfinite(r[f"w{w:g}"]) and np.isfinite(r["both"])])
             lo, hi = bootstrap(diff, rng)
             out["chosen_minus_both"] = {"weight": w, "mean": float(diff.mean()), "lo": lo, "hi": hi}
+            for k in RELATIVE:  # the start-relative terms, paired with the reward as it is
+                diff = np.array([r[k] - r["both"] for r in rows if np.isfinite(r[k]) and np.isfinite(r["both"])])
+                lo, hi = bootstrap(diff, rng)
+                out[f"{k}_minus_both"] = {"mean": float(diff.mean()), "lo": lo, "hi": hi}
         report["splits"][split] = {**out, "rows": rows}
         print(f"{split} ({len(rows)} episodes): " + ", ".join(
-            f"{v} {out['views'][v]['spearman']:.3f} [{out['views'][v]['lo']:.3f}, {out['views'][v]['hi']:.3f}]" for v in VIEWS))
+            f"{v} {out['views'][v]['spearman']:.3f} [{out['views'][v]['lo']:.3f}, {out['views'][v]['hi']:.3f}]" for v in VIEWS + RELATIVE))
         print("  wrist weight: " + " ".join(f"{w} {v:.3f}" for w, v in out["wrist_weights"].items()))
         if "chosen_minus_both" in out:
             c = out["chosen_minus_both"]
             print(f"  wrist weight {c['weight']:g} (chosen on train) minus both views' mean: {c['mean']:+.3f} [{c['lo']:+.3f}, {c['hi']:+.3f}]")
+            for k in RELATIVE:
+                c = out[f"{k}_minus_both"]
+                print(f"  {k} minus both views' mean: {c['mean']:+.3f} [{c['lo']:+.3f}, {c['hi']:+.3f}]")
         for task, t in out["tasks"].items():
-            print(f"  {task:12s} n={t['episodes']:3d} " + " ".join(f"{v} {t[v]:+.3f}" for v in VIEWS))
+            print(f"  {task:12s} n={t['episodes']:3d} " + " ".join(f"{v} {t[v]:+.3f}" for v in VIEWS + RELATIVE))
+    report["ends"] = episode_ends(inp, distance, args.episodes, args.seed)
     if args.out is not None:
         args.out.write_text(json.dumps(report, indent=1) + "\n")
+
+
+def episode_ends(inp, distance, limit: int, seed: int) -> dict:
+    """Does a dense term separate how successful and failed episodes end? AUROC (success vs the collect's
+    labelled failures, near-miss and grasp-miss) of each term at the episode's last frame, per split;
+    a term that pays for mere change from the start would not."""
+    from stages.train_wm.evaluate import auroc
+
+    out = {}
+    for split, ids in (("ind", inp.split["heldout"]), ("ood", inp.split["ood"])):
+        good = inp.episodes_for(ids, inp.tasks, True, limit, seed)
+        bad = [i for i in inp.episodes_for(ids, inp.tasks, False, 10**9, seed) if not inp.meta[i].success][:limit]
+        last = {k: [] for k in VIEWS + RELATIVE + ("start",)}
+        for eid in good + bad:
+            d = episode_distances(inp, distance, eid)
+            terms = {**{v: 1.0 - d[v] for v in VIEWS}, **relative(d), "start": d["start"]}
+            for k, x in terms.items():
+                last[k].append(x[-1])
+        label = np.array([1] * len(good) + [0] * len(bad))
+        out[split] = {"successes": len(good), "failures": len(bad),
+                      "auroc": {k: auroc(np.array(v), label) for k, v in last.items()}}
+        print(f"{split} ends ({len(good)} successes, {len(bad)} failures), AUROC of the last frame's term: "
+              + " ".join(f"{k} {a:.3f}" for k, a in out[split]["auroc"].items()))
+    return out
 
 
 def _load(dirs: dict):

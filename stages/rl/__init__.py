@@ -3,8 +3,9 @@
 demonstrations plus its own successful episodes there (``stages.rl.filtered_bc``).
 
 The world model is the environment (``WorldModelVecEnv``) and, for ``reward: wm``, also the reward:
-alpha * sparse (its done head >= theta_sps) + beta * dense (perceptual similarity to the goal frame
-the text world model imagined). Baselines share everything but the reward: ``rule`` trains in
+alpha * sparse (its done head >= theta_sps) + beta * dense (by default LPIPS to the episode's first
+frame minus LPIPS to the goal frame the goals stage made; the paper's similarity to the goal with
+``dense: similarity``). Baselines share everything but the reward: ``rule`` trains in
 ManiSkill on the task's hand-written dense reward; ``embedding`` (iVideoGPT-style) and ``proxy``
 (DiWA-style) are reward models fitted to that rule reward. Multi-scene: every training
 environment (task x scene) of the SFT policy's tasks is sampled at every reset; multi-task: the
@@ -89,10 +90,12 @@ class Config(BaseModel):
     reward: Literal[REWARDS] = Field("wm", description="reward module (stages.rl.rewards.REGISTRY)")
     # reward `wm`
     alpha: float = Field(5.0, ge=0, description="weight of the sparse done-head reward")
-    beta: float = Field(0.02, ge=0, description="weight of the dense goal-similarity reward")
+    beta: float = Field(0.02, ge=0, description="weight of the dense reward (``dense``)")
     theta_sps: float = Field(0.5, gt=0, lt=1, description="done-head threshold of the sparse reward")
-    dense: Literal["similarity", "potential"] = Field(
-        "similarity", description="similarity: 1 - LPIPS to the goal; potential: gamma*Phi(s') - Phi(s), Phi = -LPIPS")
+    dense: Literal["progress", "similarity", "potential"] = Field(
+        "progress", description="progress: LPIPS to the episode's first frame - LPIPS to the goal (tracks task "
+        "progress, docs/rl.md 'The dense term'); similarity: 1 - LPIPS to the goal (the paper's); potential: "
+        "gamma*Phi(s') - Phi(s), Phi = -LPIPS to the goal")
     success_payout: bool = Field(True, description="a success that ends an episode is paid the module's per-step "
                                  "maximum for its step and every step left until truncation (discounted): finishing "
                                  "out-earns lingering next to the goal in every module")
@@ -245,7 +248,7 @@ class Config(BaseModel):
         if self.reward != "wm":
             raise ValueError(f"reward {self.reward!r} with success_payout false: its per-step reward is positive "
                              "next to the goal, so lingering until truncation out-earns finishing; keep the payout")
-        if self.dense == "similarity" and self.alpha <= self.beta * self.max_episode_steps:
+        if self.dense != "potential" and self.alpha <= self.beta * self.max_episode_steps:
             raise ValueError(
                 f"alpha ({self.alpha}) <= beta * max_episode_steps ({self.beta * self.max_episode_steps:g}): "
                 "an episode that lingers near the goal would earn more dense reward than one that finishes; "

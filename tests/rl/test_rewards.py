@@ -33,12 +33,41 @@ def _batch(third, wrist, done, goal_index):
 def test_dense_reward_rises_as_the_frame_approaches_the_goal(scene):
     (s3, sw), (g3, gw) = scene
     dist = GoalDistance(g3, gw)
-    reward = WMReward(dist, alpha=0.0, beta=1.0, theta_sps=0.5, num_envs=6)
+    reward = WMReward(dist, alpha=0.0, beta=1.0, theta_sps=0.5, dense="similarity", num_envs=6)
     ks = torch.linspace(0, 1, 6)[:, None, None, None]
     third, wrist = (1 - ks) * s3 + ks * g3, (1 - ks) * sw + ks * gw  # (6, 3, H, W) from start to goal
     r = reward(_batch(third, wrist, np.zeros(6), np.zeros(6, dtype=int)))
     assert np.all(np.diff(r) > 0), r  # similarity, not distance: closer is better
     assert r[-1] == pytest.approx(1.0, abs=1e-5) and r[0] < 0.9
+
+
+def test_progress_rises_from_minus_to_plus_the_start_goal_distance(scene):
+    (s3, sw), (g3, gw) = scene
+    dist = GoalDistance(g3, gw)
+    reward = WMReward(dist, alpha=0.0, beta=1.0, theta_sps=0.5, dense="progress", num_envs=6)
+    ks = torch.linspace(0, 1, 6)[:, None, None, None]
+    third, wrist = (1 - ks) * s3 + ks * g3, (1 - ks) * sw + ks * gw  # (6, 3, H, W) from start to goal
+    starts = _batch(s3.repeat(6, 1, 1, 1), sw.repeat(6, 1, 1, 1), np.zeros(6), np.zeros(6, dtype=int))
+    reward.reset(np.arange(6), starts)
+    r = reward(_batch(third, wrist, np.zeros(6), np.zeros(6, dtype=int)))
+    span = dist(s3, sw, [0])[0]  # LPIPS(start, goal)
+    assert np.all(np.diff(r) > 0), r
+    assert r[0] == pytest.approx(-span, abs=1e-5) and r[-1] == pytest.approx(span, abs=1e-5)
+
+
+def test_progress_reads_each_envs_own_first_frame_across_restarts(scene):
+    (s3, sw), (g3, gw) = scene
+    reward = WMReward(GoalDistance(g3, gw), alpha=0.0, beta=1.0, theta_sps=0.5, dense="progress", num_envs=2)
+    with pytest.raises(RuntimeError, match="reset"):
+        reward(_batch(s3.repeat(2, 1, 1, 1), sw.repeat(2, 1, 1, 1), np.zeros(2), [0, 0]))
+    reward.reset(np.arange(2), _batch(s3.repeat(2, 1, 1, 1), sw.repeat(2, 1, 1, 1), np.zeros(2), [0, 0]))
+    at_goal = _batch(g3.repeat(2, 1, 1, 1), gw.repeat(2, 1, 1, 1), np.zeros(2), [0, 0])
+    before = reward(at_goal)
+    # env 1 restarts at the goal itself: it has come nowhere; env 0 keeps its start
+    reward.reset(np.array([1]), _batch(torch.cat([s3, g3]), torch.cat([sw, gw]), np.zeros(2), [0, 0]))
+    after = reward(at_goal)
+    assert after[0] == pytest.approx(before[0]) and before[1] > 0.05
+    assert after[1] == pytest.approx(0.0, abs=1e-6)
 
 
 def test_sparse_reward_fires_exactly_at_theta(scene):
@@ -92,7 +121,7 @@ def test_unknown_reward_module_is_refused():
         Config(reward="lpips")
 
 
-@pytest.mark.parametrize("dense", ["similarity", "potential"])
+@pytest.mark.parametrize("dense", ["progress", "similarity", "potential"])
 def test_diagnostics_along_an_episode_equal_the_env_stepping_the_module(scene, dense):
     """Diagnostics score episodes with ``along``; the env calls the module step by step: same rewards."""
     (s3, sw), (g3, gw) = scene

@@ -1,10 +1,15 @@
 """``wm`` (ours, the paper's): alpha * sparse + beta * dense, both from the world model.
 
-sparse = 1 when the action WM's done head >= theta_sps. dense = perceptual *similarity* of the
-current frame to the environment's goal frame, 1 - LPIPS (averaged over both views), or, with
-``dense: potential``, the shaping term gamma * Phi(s') - Phi(s) with Phi = -LPIPS (policy
-invariant; sums to a telescoping difference, so lingering earns nothing). The goal frames' LPIPS
-features are computed once, not per step. The authors' environment added LPIPS *distance* (paying
+sparse = 1 when the action WM's done head >= theta_sps. dense, by ``dense``:
+  - ``progress``: LPIPS(frame, episode's first frame) - LPIPS(frame, goal): how far the frame has
+    come from the start and how close it is to the goal, in [-1, 1]. The distance to the goal alone is
+    dominated by the arm; the distance to the start adds what the episode has changed (docs/rl.md,
+    "The dense term").
+  - ``similarity``: the paper's perceptual *similarity* to the environment's goal frame, 1 - LPIPS;
+  - ``potential``: the shaping term gamma * Phi(s') - Phi(s) with Phi = -LPIPS to the goal (policy
+    invariant; sums to a telescoping difference, so lingering earns nothing).
+LPIPS is averaged over both views. The goal frames' LPIPS features are computed once, an episode's
+first frame's at its start, the current frame's once per step. The authors' environment added LPIPS *distance* (paying
 the agent to move away from the goal): tests/rl pin the sign.
 """
 from __future__ import annotations
@@ -41,29 +46,39 @@ class GoalDistance:
             return [self.net.features(v.to(self.device) * 2 - 1) for v in views]
 
     @torch.no_grad()
+    def between(self, feats: list[list[torch.Tensor]], others: list[list[torch.Tensor]]) -> np.ndarray:
+        """(B,) mean LPIPS over both views between two ``features`` outputs (rows paired)."""
+        d = 0.0
+        for f, o in zip(feats, others):
+            d = d + self.net.distance_from_features(f, o)
+        return (d / 2).cpu().numpy().astype(np.float64)
+
+    def goals_of(self, goal_index: np.ndarray) -> list[list[torch.Tensor]]:
+        idx = torch.as_tensor(goal_index, dtype=torch.long, device=self.device)
+        return [[g[idx] for g in gf] for gf in self.goal_feats]
+
+    @torch.no_grad()
     def __call__(self, third: torch.Tensor, wrist: torch.Tensor, goal_index: np.ndarray) -> np.ndarray:
         """(B,) mean LPIPS over both views of frames (B, 3, H, W) in [0, 1] to goals[goal_index]."""
-        idx = torch.as_tensor(goal_index, dtype=torch.long, device=self.device)
-        d = 0.0
-        for f, gf in zip(self.features(third, wrist), self.goal_feats):
-            d = d + self.net.distance_from_features(f, [g[idx] for g in gf])
-        return (d / 2).cpu().numpy().astype(np.float64)
+        return self.between(self.features(third, wrist), self.goals_of(goal_index))
 
 
 class WMReward(RewardModule):
     name = "wm"
     needs_frames = True
-    stateless = False  # dense: potential remembers the previous frame's potential
+    stateless = False  # potential remembers the previous frame's potential, progress the first frame
+    DENSE = ("progress", "similarity", "potential")
 
     def __init__(self, distance: GoalDistance, *, alpha: float, beta: float, theta_sps: float,
-                 dense: str = "similarity", gamma: float = 0.99, num_envs: int = 1):
-        if dense not in ("similarity", "potential"):
-            raise ValueError(f"dense must be 'similarity' or 'potential', got {dense!r}")
+                 dense: str = "progress", gamma: float = 0.99, num_envs: int = 1):
+        if dense not in self.DENSE:
+            raise ValueError(f"dense must be one of {self.DENSE}, got {dense!r}")
         self.distance, self.alpha, self.beta, self.theta = distance, alpha, beta, theta_sps
         self.dense_kind, self.gamma = dense, gamma
         self.needs_frames = beta > 0  # sparse only (beta 0): the environment decodes no frame for it
         self.prev_phi = np.zeros(num_envs)
-        # similarity and potential steps are both <= 1 (LPIPS distance lies in [0, 1])
+        self.start_feats: list[list[torch.Tensor]] | None = None  # progress: per view, per layer (num_envs, C, h, w)
+        # every dense step is <= 1 (LPIPS distance lies in [0, 1])
         self.max_step_reward = alpha + beta
 
     @classmethod
@@ -78,15 +93,34 @@ class WMReward(RewardModule):
         return 1.0 - self.distance(batch.third, batch.wrist, batch.goal_index)
 
     def reset(self, rows: np.ndarray, batch: StepBatch) -> None:
-        if self.dense_kind == "potential" and len(rows) and self.needs_frames:
+        if not len(rows) or not self.needs_frames:
+            return
+        if self.dense_kind == "potential":
             phi = -self.distance(batch.third, batch.wrist, batch.goal_index)
             self.prev_phi[rows] = phi[rows]
+        elif self.dense_kind == "progress":
+            idx = torch.as_tensor(rows, dtype=torch.long)
+            feats = self.distance.features(batch.third[idx], batch.wrist[idx])
+            if self.start_feats is None:  # sized on the first reset, which restarts every env
+                n = len(batch.goal_index)
+                self.start_feats = [[f.new_zeros((n, *f.shape[1:])) for f in view] for view in feats]
+            for store, view in zip(self.start_feats, feats):
+                for s, f in zip(store, view):
+                    s[idx.to(s.device)] = f
+
+    def progress(self, feats: list[list[torch.Tensor]], start: list[list[torch.Tensor]], goal_index) -> np.ndarray:
+        """(B,) LPIPS to the episode's first frame minus LPIPS to the goal."""
+        return self.distance.between(feats, start) - self.distance.between(feats, self.distance.goals_of(goal_index))
 
     def __call__(self, batch: StepBatch) -> np.ndarray:
         if not self.needs_frames:
             return self.alpha * self.sparse(batch)
         if self.dense_kind == "similarity":
             dense = self.similarity(batch)
+        elif self.dense_kind == "progress":
+            if self.start_feats is None:
+                raise RuntimeError("dense: progress needs reset() with the episodes' first frames before a step")
+            dense = self.progress(self.distance.features(batch.third, batch.wrist), self.start_feats, batch.goal_index)
         else:
             phi = -self.distance(batch.third, batch.wrist, batch.goal_index)
             dense = self.gamma * phi - self.prev_phi
@@ -96,6 +130,11 @@ class WMReward(RewardModule):
     def dense_along(self, first: StepBatch, frames: StepBatch) -> np.ndarray:
         """The dense term (T,) along one episode, all frames scored in one batch."""
         third, wrist = torch.cat([first.third, frames.third]), torch.cat([first.wrist, frames.wrist])
+        if self.dense_kind == "progress":
+            feats = self.distance.features(third, wrist)  # per view, per layer (T+1, C, h, w)
+            now = [[f[1:] for f in view] for view in feats]
+            start = [[f[:1].expand_as(f[1:]) for f in view] for view in feats]
+            return self.progress(now, start, frames.goal_index)
         d = self.distance(third, wrist, np.concatenate([first.goal_index, frames.goal_index]))  # (T+1,)
         return 1.0 - d[1:] if self.dense_kind == "similarity" else self.gamma * -d[1:] + d[:-1]
 
