@@ -1,13 +1,18 @@
-"""Which view's LPIPS to the goal tracks progress? The `wm` reward's dense term per camera.
+"""Which dense term tracks progress? The `wm` reward's LPIPS to the goal per camera, and read
+against the episode's start.
 
-The rl stage's reward diagnostics (``stages.rl.train._diagnose``) score the dense term, 1 - LPIPS to
-the environment's goal frame averaged over the third view and the wrist view, along held-out
+The rl stage's reward diagnostics (``stages.rl.train._diagnose``) score the dense term (with
+``dense: similarity``, 1 - LPIPS to the environment's goal frame averaged over the third view and the
+wrist view) along held-out
 successful episodes (frames through the tokenizer, as the world model's frames are) and report its
 Spearman correlation with progress t / T. This probe does the same on more episodes and reads the
 two views apart: third view alone, wrist view alone, and their mean (the reward as it is), per
 split and per task, with a bootstrap interval over episodes; and the mean correlation of a weighted
 mean of the two views' distances for a few wrist weights, on IND *training* episodes too (choose a
-weight there, read it on the held-out and OOD ones).
+weight there, read it on the held-out and OOD ones). It also scores the terms that read the distance
+to the episode's first frame (``relative``: ``diff``, which is ``dense: progress``, the ``ratio``, and
+that distance alone), paired with the goal-only term, and how episodes end: each term's AUROC at the
+last frame, successful episodes against collect's near-miss and grasp-miss failures.
 
     PYTHONPATH=. .venv/bin/python scripts/dense_view_probe.py <collect> <tokenize> <train_wm> <sft> <goals> \\
         [--episodes 64] [--seed 0] [--out F.json]
@@ -23,7 +28,7 @@ import numpy as np
 import torch
 
 VIEWS = ("third", "wrist", "both")
-RELATIVE = ("ratio", "diff")  # relative(): the distance to the start read too
+RELATIVE = ("ratio", "diff", "start")  # relative(): the distance to the start read too (start: it alone)
 WRIST_WEIGHTS = (0.0, 0.25, 0.5, 0.625, 0.75, 0.875, 1.0)  # dense = 1 - ((1 - w) LPIPS_third + w LPIPS_wrist)
 
 
@@ -49,7 +54,7 @@ def view_correlations(d: dict[str, np.ndarray]) -> dict[str, float]:
 def relative(d: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """Dense terms that also read the distance to the episode's start (higher = further along)."""
     s, g = d["start"], d["both"]
-    return {"ratio": s / np.maximum(s + g, 1e-8), "diff": s - g}
+    return {"ratio": s / np.maximum(s + g, 1e-8), "diff": s - g, "start": s}
 
 
 def episode_distances(inp, distance, episode_id: str) -> dict[str, np.ndarray]:
@@ -143,10 +148,10 @@ def episode_ends(inp, distance, limit: int, seed: int) -> dict:
     for split, ids in (("ind", inp.split["heldout"]), ("ood", inp.split["ood"])):
         good = inp.episodes_for(ids, inp.tasks, True, limit, seed)
         bad = [i for i in inp.episodes_for(ids, inp.tasks, False, 10**9, seed) if not inp.meta[i].success][:limit]
-        last = {k: [] for k in VIEWS + RELATIVE + ("start",)}
+        last = {k: [] for k in VIEWS + RELATIVE}
         for eid in good + bad:
             d = episode_distances(inp, distance, eid)
-            terms = {**{v: 1.0 - d[v] for v in VIEWS}, **relative(d), "start": d["start"]}
+            terms = {**{v: 1.0 - d[v] for v in VIEWS}, **relative(d)}
             for k, x in terms.items():
                 last[k].append(x[-1])
         label = np.array([1] * len(good) + [0] * len(bad))

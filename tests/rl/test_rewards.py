@@ -30,12 +30,17 @@ def _batch(third, wrist, done, goal_index):
                      torch.zeros(n, 4), np.asarray(goal_index), third, wrist)
 
 
-def test_dense_reward_rises_as_the_frame_approaches_the_goal(scene):
+def _towards_goal(scene, n: int):
+    """Frames (n, 3, H, W) per view, interpolated from the start to the goal."""
     (s3, sw), (g3, gw) = scene
-    dist = GoalDistance(g3, gw)
-    reward = WMReward(dist, alpha=0.0, beta=1.0, theta_sps=0.5, dense="similarity", num_envs=6)
-    ks = torch.linspace(0, 1, 6)[:, None, None, None]
-    third, wrist = (1 - ks) * s3 + ks * g3, (1 - ks) * sw + ks * gw  # (6, 3, H, W) from start to goal
+    ks = torch.linspace(0, 1, n)[:, None, None, None]
+    return (1 - ks) * s3 + ks * g3, (1 - ks) * sw + ks * gw
+
+
+def test_dense_reward_rises_as_the_frame_approaches_the_goal(scene):
+    (_, _), (g3, gw) = scene
+    reward = WMReward(GoalDistance(g3, gw), alpha=0.0, beta=1.0, theta_sps=0.5, dense="similarity", num_envs=6)
+    third, wrist = _towards_goal(scene, 6)
     r = reward(_batch(third, wrist, np.zeros(6), np.zeros(6, dtype=int)))
     assert np.all(np.diff(r) > 0), r  # similarity, not distance: closer is better
     assert r[-1] == pytest.approx(1.0, abs=1e-5) and r[0] < 0.9
@@ -45,8 +50,7 @@ def test_progress_rises_from_minus_to_plus_the_start_goal_distance(scene):
     (s3, sw), (g3, gw) = scene
     dist = GoalDistance(g3, gw)
     reward = WMReward(dist, alpha=0.0, beta=1.0, theta_sps=0.5, dense="progress", num_envs=6)
-    ks = torch.linspace(0, 1, 6)[:, None, None, None]
-    third, wrist = (1 - ks) * s3 + ks * g3, (1 - ks) * sw + ks * gw  # (6, 3, H, W) from start to goal
+    third, wrist = _towards_goal(scene, 6)
     starts = _batch(s3.repeat(6, 1, 1, 1), sw.repeat(6, 1, 1, 1), np.zeros(6), np.zeros(6, dtype=int))
     reward.reset(np.arange(6), starts)
     r = reward(_batch(third, wrist, np.zeros(6), np.zeros(6, dtype=int)))
