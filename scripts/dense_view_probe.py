@@ -142,12 +142,13 @@ def episode_ends(inp, distance, limit: int, seed: int) -> dict:
     """Does a dense term separate how successful and failed episodes end? AUROC (success vs the collect's
     labelled failures, near-miss and grasp-miss) of each term at the episode's last frame, per split;
     a term that pays for mere change from the start would not."""
+    from stages.collect.plans import FAILURE_KINDS
     from stages.train_wm.evaluate import auroc
 
     out = {}
     for split, ids in (("ind", inp.split["heldout"]), ("ood", inp.split["ood"])):
         good = inp.episodes_for(ids, inp.tasks, True, limit, seed)
-        bad = [i for i in inp.episodes_for(ids, inp.tasks, False, 10**9, seed) if not inp.meta[i].success][:limit]
+        bad = inp.episodes_for(ids, inp.tasks, False, limit, seed, kinds=list(FAILURE_KINDS))
         last = {k: [] for k in VIEWS + RELATIVE}
         for eid in good + bad:
             d = episode_distances(inp, distance, eid)
