@@ -1,0 +1,171 @@
+"""Every method against its SFT policy on the committed fresh-state episodes: one table, one figure.
+
+The per-episode files under ``docs/results/fresh_states/`` (written by ``scripts/evaluate_sft.py
+--out``: 100 fresh initial states per task and split, the same states for every policy of a seed)
+are the evidence behind docs/RESULTS.md's headline numbers. ``comparisons.json`` beside them names,
+for each method, its file stem, its seeds and the stem of the files it is paired with (usually the
+seed's SFT policy). This script pairs them episode by episode (stages/sweep_report/paired.py), pools
+the seeds, and gives both intervals: over the pooled episodes (these policies) and over the seeds
+(Student-t: what another seed would give).
+
+    PYTHONPATH=. .venv/bin/python scripts/fresh_state_table.py [--manifest M] [--figure PNG]
+
+File names: ``<stem>_s<seed>_<tag>_<date>.jsonl`` in domain, ``<stem>_ood_s<seed>_<tag>_<date>.jsonl``
+out of domain; each (stem, seed, split) must match exactly one file.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from stages.sweep_report.paired import across_seeds, by_split, pair_up  # noqa: E402
+
+FRESH = Path(__file__).resolve().parents[1] / "docs" / "results" / "fresh_states"
+SPLITS = ("ind", "ood")
+XLIM = 0.25  # the forest plot's half-width
+FIELDS = {"label", "stem", "baseline", "seeds", "tag"}
+OPTIONAL = {"splits"}  # default both; a method evaluated in one split only names it
+
+
+@dataclass(frozen=True)
+class Comparison:
+    label: str      # the row's name
+    stem: str       # file stem of the compared policy's episodes
+    baseline: str   # file stem of the episodes it is paired with (e.g. "sft")
+    seeds: tuple[int, ...]
+    tag: str        # the machine/store tag in the file names (e.g. "epyc")
+    splits: tuple[str, ...] = SPLITS
+
+
+def load_manifest(path: Path) -> list[Comparison]:
+    """The manifest's comparisons; unknown or missing fields raise naming the entry."""
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise SystemExit(f"{path}: cannot read the manifest ({e})")
+    if not isinstance(raw, dict) or set(raw) != {"comparisons"} or not isinstance(raw["comparisons"], list):
+        raise SystemExit(f"{path}: expected {{\"comparisons\": [...]}}")
+    out = []
+    for i, entry in enumerate(raw["comparisons"]):
+        if not isinstance(entry, dict) or not FIELDS <= set(entry) <= FIELDS | OPTIONAL:
+            got = sorted(entry) if isinstance(entry, dict) else type(entry).__name__
+            raise SystemExit(f"{path}: comparison {i} has fields {got}, expected {sorted(FIELDS)} "
+                             f"and optionally {sorted(OPTIONAL)}")
+        seeds = entry["seeds"]
+        if not seeds or not all(isinstance(s, int) for s in seeds):
+            raise SystemExit(f"{path}: comparison {i} ({entry['label']!r}): seeds must be a non-empty list of integers")
+        splits = tuple(entry.get("splits", SPLITS))
+        if not splits or not set(splits) <= set(SPLITS):
+            raise SystemExit(f"{path}: comparison {i} ({entry['label']!r}): splits {list(splits)} not a subset of {list(SPLITS)}")
+        out.append(Comparison(entry["label"], entry["stem"], entry["baseline"], tuple(seeds), entry["tag"], splits))
+    return out
+
+
+def episodes_file(folder: Path, stem: str, seed: int, split: str, tag: str) -> Path:
+    """The one file holding ``stem``'s episodes of ``seed`` in ``split``."""
+    name = f"{stem}_s{seed}_{tag}_" if split == "ind" else f"{stem}_ood_s{seed}_{tag}_"
+    hits = sorted(p for p in folder.glob(f"{name}*.jsonl") if p.name[len(name):-len(".jsonl")].count("_") == 0)
+    if len(hits) != 1:
+        raise SystemExit(f"{folder}: {len(hits)} files match {name}<date>.jsonl (expected one): {[p.name for p in hits]}")
+    return hits[0]
+
+
+def episodes(path: Path) -> list[dict]:
+    """A results file's episodes; it must hold one policy's."""
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    policies = {r["policy"] for r in rows}
+    if len(policies) != 1:
+        raise SystemExit(f"{path}: expected one policy's episodes, found {sorted(policies)}")
+    return rows
+
+
+def compare(c: Comparison, folder: Path) -> dict[str, dict]:
+    """Per split: the pooled paired difference, the per-seed differences and their across-seed interval."""
+    out = {}
+    for split in c.splits:
+        pooled, per_seed = [], []
+        for seed in c.seeds:
+            method = episodes(episodes_file(folder, c.stem, seed, split, c.tag))
+            base = episodes(episodes_file(folder, c.baseline, seed, split, c.tag))
+            pairs = [(r, b) for r, b in pair_up(method, base) if r["split"] == split]
+            if not pairs:
+                raise SystemExit(f"{c.label!r} seed {seed} {split}: no episode shares an initial state with its baseline")
+            pooled += pairs
+            per_seed.append(by_split(pairs)[(split,)]["diff"])
+        out[split] = {"pooled": by_split(pooled)[(split,)], "per_seed": per_seed, "seeds": across_seeds(per_seed)}
+    return out
+
+
+def table(rows: list[tuple[Comparison, dict]]) -> str:
+    """A markdown table: pooled [interval] (n) and across seeds [interval] per split."""
+    def cell(r: dict | None) -> str:
+        if r is None:
+            return "- | -"
+        p, s = r["pooled"], r["seeds"]
+        seeds = f"{s['diff']:+.2f} [{s['lo']:+.2f}, {s['hi']:+.2f}]" if s["k"] > 1 else "-"
+        return f"{p['diff']:+.2f} [{p['lo']:+.2f}, {p['hi']:+.2f}] | {seeds}"
+
+    lines = ["| method | against | seeds | IND pooled | IND across seeds | OOD pooled | OOD across seeds | n per split |",
+             "|---|---|---|---|---|---|---|---|"]
+    for c, r in rows:
+        seeds = ", ".join(map(str, c.seeds))
+        n = r[c.splits[0]]["pooled"]["n"]
+        lines.append(f"| {c.label} | `{c.baseline}` | {seeds} | {cell(r.get('ind'))} | {cell(r.get('ood'))} | {n:,} |")
+    return "\n".join(lines)
+
+
+def figure(rows: list[tuple[Comparison, dict]], path: Path) -> None:
+    """A forest plot per split: pooled interval (thick), across-seed interval (thin), seeds (dots)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 0.4 * len(rows) + 1.4), sharey=True)
+    ys = list(range(len(rows)))[::-1]
+    for ax, split in zip(axes, SPLITS):
+        for y, (c, r) in zip(ys, rows):
+            if split not in r:
+                continue
+            res = r[split]
+            s = res["seeds"]
+            if s["k"] > 1 and not math.isnan(s["lo"]):
+                ax.plot([s["lo"], s["hi"]], [y, y], color="0.6", lw=1)
+            p = res["pooled"]
+            ax.plot([p["lo"], p["hi"]], [y, y], color="C0", lw=4, solid_capstyle="butt")
+            ax.plot(res["per_seed"], [y] * len(res["per_seed"]), "o", color="C1", ms=3)
+            ax.plot([p["diff"]], [y], "|", color="k", ms=10)
+        ax.axvline(0, color="k", lw=0.8)
+        ax.set_xlim(-XLIM, XLIM)  # two-seed Student-t intervals run off it rather than squash the rest
+        ax.set_title({"ind": "in domain", "ood": "out of domain"}[split])
+        ax.set_xlabel("success minus SFT's (or the named baseline's), paired")
+        ax.grid(axis="x", alpha=0.3)
+    axes[0].set_yticks(ys, [c.label + ("" if c.baseline == "sft" else f", minus {c.baseline}") for c, _ in rows],
+                       fontsize=8)
+    fig.suptitle("thick: 95% interval over pooled episodes; thin: over seeds (Student-t, may run off the axis); dots: seeds", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--manifest", type=Path, default=FRESH / "comparisons.json")
+    ap.add_argument("--figure", type=Path, help="write the forest plot here (PNG)")
+    args = ap.parse_args()
+    folder = args.manifest.parent
+    rows = [(c, compare(c, folder)) for c in load_manifest(args.manifest)]
+    print(table(rows))
+    if args.figure:
+        figure(rows, args.figure)
+        print(f"figure: {args.figure}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

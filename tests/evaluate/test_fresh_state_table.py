@@ -1,0 +1,67 @@
+"""scripts/fresh_state_table.py: hand-made episode files give known paired differences; the committed
+manifest resolves to committed files that pair; a malformed manifest names what is wrong."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+SCRIPT = REPO / "scripts" / "fresh_state_table.py"
+
+
+def _write(folder: Path, name: str, policy: str, split: str, wins: set[int]) -> None:
+    rows = [{"policy": policy, "task": "push", "split": split, "scene_id": "a", "seed": i, "success": i in wins}
+            for i in range(4)]
+    (folder / name).write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, cwd=REPO)
+
+
+def test_pooled_and_across_seed_differences_per_split(tmp_path):
+    for seed, ind_wins, ood_wins in ((0, {0, 1, 2, 3}, {0}), (1, set(), {0})):
+        _write(tmp_path, f"sft_s{seed}_m_2026-01-01.jsonl", "sft", "ind", set())
+        _write(tmp_path, f"sft_ood_s{seed}_m_2026-01-01.jsonl", "sft", "ood", {0, 1})
+        _write(tmp_path, f"meth_s{seed}_m_2026-01-02.jsonl", "ppo", "ind", ind_wins)
+        _write(tmp_path, f"meth_ood_s{seed}_m_2026-01-02.jsonl", "ppo", "ood", ood_wins)
+    # a file of another stem sharing the prefix must not be picked up
+    _write(tmp_path, "meth_random_s0_m_2026-01-02.jsonl", "ppo", "ind", set())
+    (tmp_path / "comparisons.json").write_text(json.dumps({"comparisons": [
+        {"label": "meth", "stem": "meth", "baseline": "sft", "seeds": [0, 1], "tag": "m"}]}))
+    out = _run("--manifest", str(tmp_path / "comparisons.json"), "--figure", str(tmp_path / "f.png"))
+    assert out.returncode == 0, out.stderr
+    row = next(line for line in out.stdout.splitlines() if line.startswith("| meth |"))
+    # IND: seed 0 +1.00, seed 1 +0.00 -> pooled +0.50 over 8 pairs, sd 0.53, half-width 1.96 * 0.53 / sqrt(8) = 0.37;
+    # across seeds sd 0.71, t(1) = 12.7 -> clipped to [-1, +1]
+    # OOD: both seeds -0.25 (the method lost state 1) -> across seeds sd 0, interval of zero width
+    assert "| +0.50 [+0.13, +0.87] | +0.50 [-1.00, +1.00] | -0.25 [-0.57, +0.07] | -0.25 [-0.25, -0.25] | 8 |" in row
+    assert (tmp_path / "f.png").stat().st_size > 0
+
+
+def test_committed_manifest_pairs_every_listed_file():
+    out = _run()
+    assert out.returncode == 0, out.stderr
+    manifest = json.loads((REPO / "docs" / "results" / "fresh_states" / "comparisons.json").read_text())
+    rows = [line for line in out.stdout.splitlines() if line.startswith("| ") and not line.startswith("| method")]
+    assert len(rows) == len(manifest["comparisons"])
+
+
+@pytest.mark.parametrize("manifest, message", [
+    ({"comparisons": [{"label": "x", "stem": "meth", "baseline": "sft", "seeds": [0]}]}, "has fields"),
+    ({"comparisons": [{"label": "x", "stem": "meth", "baseline": "sft", "seeds": [], "tag": "m"}]}, "non-empty list"),
+    ({"comparisons": [{"label": "x", "stem": "meth", "baseline": "sft", "seeds": [0], "tag": "m", "splits": ["val"]}]},
+     "not a subset"),
+    ({"comparisons": [{"label": "x", "stem": "nothing", "baseline": "sft", "seeds": [0], "tag": "m"}]},
+     "0 files match nothing_s0_m_<date>.jsonl"),
+    ({"rows": []}, "expected {\"comparisons\""),
+])
+def test_bad_manifest_names_what_is_wrong(tmp_path, manifest, message):
+    _write(tmp_path, "sft_s0_m_2026-01-01.jsonl", "sft", "ind", set())
+    (tmp_path / "comparisons.json").write_text(json.dumps(manifest))
+    out = _run("--manifest", str(tmp_path / "comparisons.json"))
+    assert out.returncode != 0 and message in out.stderr, out.stderr
