@@ -15,13 +15,12 @@ its ``policy.json``). The loss is on the mean only, so PPO's action noise is lef
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from stages.sft.data import load_demo, pairs
+from stages.rl.demonstrations import sft_pairs
 from stages.sft.policy import bc_loss
 
 
@@ -41,17 +40,13 @@ class DemoBC:
     @classmethod
     def from_sft(cls, sft_dir: Path, sft_info: dict, dataset, store, obs_fn, *, batches: int, batch_size: int,
                  coef: float, seed: int) -> "DemoBC":
-        """The training demonstrations of the sft artifact at ``sft_dir`` (its split.json), read with its recipe."""
-        recipe = sft_info.get("demonstrations")
-        if recipe is None:
-            raise ValueError(f"{sft_dir}/policy.json does not say how its demonstrations were read (no "
-                             "'demonstrations' entry: an sft artifact older than rl.demo_bc_batches); rerun sft")
-        ids = json.loads((Path(sft_dir) / "split.json").read_text())["train"]
-        demos = [load_demo(dataset, store, i, int(sft_info["frame_skip"]), float(recipe["retime_min_move"]),
-                           int(recipe["retime_max_gap"])) for i in ids]
-        obs, actions = pairs(demos, obs_fn)
-        return cls(obs, actions, np.asarray(recipe["loss_weights"]), batches=batches, batch_size=batch_size,
-                   coef=coef, seed=seed)
+        """The training demonstrations of the sft artifact at ``sft_dir``, read with its recipe."""
+        train = sft_pairs(sft_dir, sft_info, dataset, store, obs_fn, "train")
+        if train is None:
+            raise ValueError(f"demonstration anchor: {sft_dir}/split.json lists no training demonstrations")
+        obs, actions = train
+        return cls(obs, actions, np.asarray(sft_info["demonstrations"]["loss_weights"]), batches=batches,
+                   batch_size=batch_size, coef=coef, seed=seed)
 
     def __len__(self) -> int:
         return len(self.actions)

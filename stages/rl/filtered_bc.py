@@ -115,18 +115,13 @@ def sft_recipe(sft_dir: Path):
 
 
 def demonstration_pairs(sft_dir: Path, sft_info: dict, dataset, store, obs_fn) -> tuple[tuple, tuple | None]:
-    """The sft artifact's training and held-out demonstration pairs, read with its recipe (policy.json)."""
-    from stages.sft.data import load_demo, pairs
+    """The sft artifact's training and held-out demonstration pairs (``stages.rl.demonstrations``)."""
+    from stages.rl.demonstrations import sft_pairs
 
-    recipe = sft_info["demonstrations"]
-    split = json.loads((Path(sft_dir) / "split.json").read_text())
-
-    def read(ids):
-        return [load_demo(dataset, store, i, int(sft_info["frame_skip"]), float(recipe["retime_min_move"]),
-                          int(recipe["retime_max_gap"])) for i in ids]
-
-    train = pairs(read(split["train"]), obs_fn)
-    return train, (pairs(read(split["val"]), obs_fn) if split["val"] else None)
+    train = sft_pairs(sft_dir, sft_info, dataset, store, obs_fn, "train")
+    if train is None:
+        raise ValueError(f"filtered BC: {sft_dir}/split.json lists no training demonstrations")
+    return train, sft_pairs(sft_dir, sft_info, dataset, store, obs_fn, "val")
 
 
 def joined(demos: tuple[dict, np.ndarray], own: list[tuple[dict, np.ndarray]]) -> tuple[dict, np.ndarray]:

@@ -59,7 +59,13 @@ def test_the_anchor_waits_for_the_critic_warm_up():
     assert model.demo_bc.last_stats == {}  # the only update was the warm-up
 
 
-def test_an_sft_artifact_without_its_demonstration_recipe_is_a_clear_error(tmp_path):
+@pytest.mark.parametrize("reader", ["anchor", "filtered_bc"])
+def test_an_sft_artifact_without_its_demonstration_recipe_is_a_clear_error(tmp_path, reader):
+    from stages.rl.filtered_bc import demonstration_pairs
+
     (tmp_path / "split.json").write_text(json.dumps({"train": ["a"], "val": []}))
     with pytest.raises(ValueError, match="rerun sft"):
-        DemoBC.from_sft(tmp_path, {"frame_skip": 4}, None, None, None, batches=1, batch_size=4, coef=1.0, seed=0)
+        if reader == "anchor":
+            DemoBC.from_sft(tmp_path, {"frame_skip": 4}, None, None, None, batches=1, batch_size=4, coef=1.0, seed=0)
+        else:
+            demonstration_pairs(tmp_path, {"frame_skip": 4}, None, None, None)

@@ -1,4 +1,4 @@
-"""``wm`` (ours, the paper's): alpha * sparse + beta * dense, both from the world model.
+"""``wm``: the paper's reward, alpha * sparse + beta * dense, both from the world model; our dense term by default.
 
 sparse = 1 when the action WM's done head >= theta_sps. dense, by ``dense``:
   - ``progress``: LPIPS(frame, episode's first frame) - LPIPS(frame, goal): how far the frame has
