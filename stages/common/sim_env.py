@@ -41,6 +41,26 @@ class SimSpec:
         return f"{self.task}/{self.scene['scene_id']}"
 
 
+_KEPT_RENDERERS: dict[str, object] = {}  # render device name -> a SAPIEN render system held until the process ends
+
+
+def keep_renderer(env: gym.Env) -> None:
+    """Hold one SAPIEN render system on ``env``'s render device for the rest of the process.
+
+    SAPIEN frees its renderer's resources when the process's last render system goes (its last env
+    closed), and the next env's first picture regenerates them: 11-15 s on the software Vulkan
+    driver, nearly all of it the renderer's BRDF lookup table (docs/collect.md), against ~0.2 s while
+    one is held (the imagined-success check builds a simulator per split, one after the other). The
+    table is the same either way, and so are the pixels (tests/rl/test_same_observation.py).
+    """
+    device = env.unwrapped.backend.render_device  # None: rendering is off, nothing to hold
+    if device is None or str(device) in _KEPT_RENDERERS:
+        return
+    import sapien.render
+
+    _KEPT_RENDERERS[str(device)] = sapien.render.RenderSystem(device)
+
+
 class SimTaskEnv(gym.Env):
     """ManiSkill task env -> {codes, proprio, instruction} observations, rule reward, success = terminated."""
 
@@ -79,6 +99,7 @@ class SimTaskEnv(gym.Env):
             _, old = self._envs.popitem(last=False)
             old.close()
         env = make_task_env(spec.task, spec.scene, image_size=self.image_size, robot_mesh=self.robot_mesh)
+        keep_renderer(env)
         self._envs[spec.key] = env
         return env
 

@@ -33,9 +33,11 @@ _SIMS: dict = {}  # per worker process: (tokenizer, text, camera, repeat, horizo
 def _sim_for(job: Job):
     """The worker's simulator env for ``job``, built once per process and kept open between jobs.
 
-    Why kept: closing a process's last SAPIEN env releases its renderer, and the next env's first
+    Why kept: closing a process's last SAPIEN env released its renderer, and the next env's first
     pictures then cost ~12 s (measured 11-14 s inside SAPIEN's take_picture for a new env vs 0.2 s
-    while another env is alive), which made one-episode jobs ~4x their episode time. ``close_sims`` ends them.
+    while another env is alive), which made one-episode jobs ~4x their episode time. The renderer is
+    now held for the process's life (``stages.common.sim_env.keep_renderer``); keeping the env also
+    keeps its tokenizer and scene loaded between jobs. ``close_sims`` ends them.
     """
     import hashlib
     import json

@@ -134,3 +134,28 @@ def test_sim_env_keeps_the_episode_first_frame_where_the_policy_reads_it():
         np.testing.assert_array_equal(obs1["codes"][tok.bits:], obs1["codes"][: tok.bits])
     finally:
         sim.close()
+
+
+def test_a_simulator_built_after_the_last_one_closed_renders_the_same_pixels_with_the_held_renderer():
+    """``keep_renderer``: closing the last env no longer frees SAPIEN's renderer (its BRDF table is not
+    regenerated for the next env), and what the next env renders is what the first one did."""
+    from stages.collect.sim import default_catalog
+    from stages.common import sim_env
+    from stages.common.sim_env import SimSpec, SimTaskEnv
+
+    tok = tiny_tokenizer()
+    scene = next(s for s in default_catalog().values() if s.split == "ind")
+    frames = []
+    for _ in range(2):
+        sim = SimTaskEnv([SimSpec("pick_place", scene.to_dict())], obs_fn(tok), max_steps=2, keep_frames=True)
+        try:
+            sim.reset(seed=5)
+            sim.step(np.array([0.5, -0.5, 0.5, 0, 0, 0, -1], np.float32))
+            device = str(sim.env.unwrapped.backend.render_device)
+            frames.append([f.copy() for pair in sim.frames for f in pair])
+        finally:
+            sim.close()
+        assert device in sim_env._KEPT_RENDERERS  # held past the close
+    assert len(frames[0]) == len(frames[1]) == 4
+    for a, b in zip(*frames):
+        np.testing.assert_array_equal(a, b)
