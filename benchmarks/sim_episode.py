@@ -1,6 +1,10 @@
 """What an evaluation episode in ManiSkill costs, measured in one run, three ways:
 
-  fresh   the old evaluate job: build the simulator env, run one episode, close it (each job)
+  fresh   the old evaluate job: build the simulator env, run one episode, close it (each job), the
+          process's renderer freed with it, so the next env's first picture regenerates it (SAPIEN's
+          BRDF lookup table, docs/collect.md)
+  held    the same with the renderer held for the process's life, as the simulator env now does
+          (stages/common/sim_env.py:keep_renderer): what a simulator rebuilt in a process costs
   kept    the current job: one env per worker process kept between jobs (a new scene each episode,
           so building the scene is included; stages/evaluate/episodes.py:_sim_for)
   render  like ``kept`` but rendering both cameras at every control step (``keep_frames``), as the
@@ -11,7 +15,7 @@
 Each episode: ``--steps`` policy steps of ``frame_skip`` control steps (random actions: speed does
 not depend on the policy), the small tokenizer's architecture (random weights) as the observation.
 Scenes are the default catalog's IND scenes, one per episode, task push. Prints seconds per episode
-and the ratios fresh/kept, render/kept and kept/cached.
+and the ratios fresh/held, held/kept, render/kept and kept/cached.
 
     .venv/bin/python benchmarks/sim_episode.py [--episodes 3] [--steps 75]
 """
@@ -46,6 +50,7 @@ def main() -> None:
     from rl_throughput import tokenizer  # the small tokenizer architecture, random weights
     from stages.collect.sim import default_catalog
     from stages.sft.observation import ObservationFn
+    from stages.common import sim_env
     from stages.common.sim_env import SimSpec, SimTaskEnv
 
     scenes = [s for s in default_catalog().values() if s.split == "ind"]
@@ -62,14 +67,23 @@ def main() -> None:
     warm.close()
     del warm
 
-    times: dict[str, list[float]] = {"fresh": [], "kept": [], "render": [], "cached": []}
-    for i in range(args.episodes):  # fresh: a new env per episode, closed after it (the last one alive)
+    times: dict[str, list[float]] = {"fresh": [], "held": [], "kept": [], "render": [], "cached": []}
+    for i in range(args.episodes):  # held: a new env per episode, closed after it, the renderer held
         t = time.perf_counter()
         env = make(specs[i])
-        episode(env, specs[i], 100 + i, args.steps, rng)
+        episode(env, specs[i], 500 + i, args.steps, rng)
         env.close()
         del env
-        times["fresh"].append(time.perf_counter() - t)
+        times["held"].append(time.perf_counter() - t)
+    for i in range(-1, args.episodes):  # fresh: the same, the renderer freed with each env (i = -1: untimed,
+        t = time.perf_counter()         # it frees the renderer the loop above held)
+        env = make(specs[max(i, 0)])
+        episode(env, specs[max(i, 0)], 100 + i, args.steps if i >= 0 else 1, rng)
+        sim_env._KEPT_RENDERERS.clear()  # as before keep_renderer: closing the last env frees the renderer
+        env.close()
+        del env
+        if i >= 0:
+            times["fresh"].append(time.perf_counter() - t)
     kept = make(specs[0])
     episode(kept, specs[0], 1, 1, rng)  # the fresh loop closed the process's last env: pay that once, untimed
     for way, offset in (("kept", 0), ("render", args.episodes)):
@@ -93,7 +107,8 @@ def main() -> None:
     print(f"episode = {args.steps} policy steps x {args.frame_skip} control steps, push, 64x64, low-poly Panda")
     for k, v in times.items():
         print(f"  {k:7s} median {med[k]:6.2f} s/episode  ({', '.join(f'{x:.2f}' for x in v)})")
-    print(f"ratio fresh/kept  {med['fresh'] / med['kept']:.2f}x  (keeping a worker's simulator between jobs)")
+    print(f"ratio fresh/held  {med['fresh'] / med['held']:.2f}x  (holding the renderer when a simulator is rebuilt)")
+    print(f"ratio held/kept   {med['held'] / med['kept']:.2f}x  (keeping a worker's simulator between jobs)")
     print(f"ratio render/kept {med['render'] / med['kept']:.2f}x  (rendering only the observed control step)")
     print(f"ratio kept/cached {med['kept'] / med['cached']:.2f}x  (keeping every scene built)")
 

@@ -29,4 +29,4 @@ def test_wm_precision_prints_its_ratios():
 @pytest.mark.sim
 def test_sim_episode_prints_its_ratios():
     out = run("benchmarks/sim_episode.py", "--episodes", "1", "--steps", "2")
-    assert "ratio fresh/kept" in out and "ratio kept/cached" in out
+    assert "ratio fresh/held" in out and "ratio held/kept" in out and "ratio kept/cached" in out
