@@ -1,4 +1,4 @@
-"""What an evaluation episode in ManiSkill costs, measured in one run, three ways:
+"""What an evaluation episode in ManiSkill costs, measured in one run, five ways:
 
   fresh   the old evaluate job: build the simulator env, run one episode, close it (each job), the
           process's renderer freed with it, so the next env's first picture regenerates it (SAPIEN's
