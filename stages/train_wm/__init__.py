@@ -26,6 +26,10 @@ Outputs (in the artifact directory):
     frames.png                 real vs predicted frame strips (held-out IND and OOD)
     tensorboard/               training curves (both world models' losses, the proprioception head's)
 
+Checkpoints (``ctx.checkpoints()``): ``action_wm`` and ``text_wm``, each model's training state,
+    saved ``CHECKPOINTS_PER_MODEL`` times during its training and after its last step; a run killed
+    mid-training resumes there and commits what an uninterrupted run commits (``seconds`` aside).
+
 Key includes:
     this config (architecture, optimisation, decoding, evaluation sizes, seed) and the keys of the
     collect and tokenize artifacts. Device is not part of the key.
@@ -38,7 +42,7 @@ from __future__ import annotations
 
 import json
 import time
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 import torch
@@ -128,6 +132,22 @@ def training_episodes(episodes: list, kind: str, done_negatives: bool) -> list:
     return [e for e in episodes if e.kind not in FAILURE_KINDS]
 
 
+# training state saved this many times per world model (every 250 of the small profile's 3,000 action
+# steps, ~3-4 min on 2 CPU cores): a killed run loses at most that much
+CHECKPOINTS_PER_MODEL = 12
+
+
+def training_checkpoint(checkpoints, name: str) -> tuple[dict | None, Callable[[dict], None]]:
+    """(the training state saved under checkpoint ``name`` by an earlier run of this key, or None;
+    a function saving a new state there) for ``train_world_model``'s ``resume`` and ``save``."""
+    def save(state: dict) -> None:
+        with checkpoints.save(name) as d:
+            torch.save(state, d / "state.pt")
+
+    found = checkpoints.load(name)
+    return (torch.load(found / "state.pt", weights_only=False) if found is not None else None), save
+
+
 def run(ctx) -> None:
     from stages.collect.dataset import Dataset
     from stages.common.text_encoder import encode_texts
@@ -164,18 +184,22 @@ def run(ctx) -> None:
     if cpu:
         torch.set_num_threads(cfg.train_threads or max(1, ctx.jobs))
     curves = Curves(ctx.out)  # TensorBoard: both world models' losses and the proprioception head's
+    checkpoints = ctx.checkpoints()  # a run killed while training resumes at the last saved step
     for i, kind in enumerate(("action", "text")):
         steps = cfg.action_steps if kind == "action" else cfg.text_steps
         net = WorldModelNet(model_spec(cfg, kind, vocab, grid)).to(ctx.device)
         net.set_action_stats(train_actions.to(ctx.device))
         clips = training_episodes(train_eps, kind, cfg.done_negatives)
         sampler = ClipSampler(clips, cfg.window, text_emb, cfg.seed + 17 * i)
+        resume, save = training_checkpoint(checkpoints, f"{kind}_wm")
         with ctx.progress(steps, f"train_wm: {kind} WM", unit="step") as bar:
             result = train_world_model(net, sampler, steps=steps, batch_size=cfg.batch_size, lr=cfg.lr,
                                        weight_decay=cfg.weight_decay, done_weight=cfg.done_weight,
                                        done_kind=cfg.done_loss, seed=cfg.seed + i, device=ctx.device,
                                        changed_weight=cfg.changed_weight, done_balance=cfg.done_balance,
-                                       context_noise=cfg.context_noise, self_context=cfg.self_context, progress=bar, log=ctx.log, desc=f"{kind}_wm", curves=curves)
+                                       context_noise=cfg.context_noise, self_context=cfg.self_context, progress=bar,
+                                       log=ctx.log, desc=f"{kind}_wm", curves=curves, resume=resume, save=save,
+                                       save_every=max(1, steps // CHECKPOINTS_PER_MODEL))
         save_world_model(net, ctx.out / CHECKPOINTS[kind],
                          {"decode_steps": cfg.decode_steps, "temperature": cfg.temperature})
         models[kind] = WorldModel(net, cfg.decode_steps, cfg.temperature, {k: v.tolist() for k, v in text_emb.items()})

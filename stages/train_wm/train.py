@@ -1,8 +1,10 @@
 """Training loop of one world model: masked-token cross-entropy on next frames plus the done loss."""
 from __future__ import annotations
 
+import copy
 import math
 import time
+from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -75,11 +77,20 @@ def own_predictions(net: WorldModelNet, tokens: torch.Tensor, control: torch.Ten
 def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, batch_size: int, lr: float,
                       weight_decay: float, done_weight: float, done_kind: str, seed: int, device,
                       changed_weight: float = 1.0, done_balance: bool = False, context_noise: float = 0.0,
-                      self_context: float = 0.0, progress=None, log=None, desc: str = "", curves=None) -> dict:
+                      self_context: float = 0.0, progress=None, log=None, desc: str = "", curves=None,
+                      resume: dict | None = None, save: Callable[[dict], None] | None = None,
+                      save_every: int = 0) -> dict:
     """Train ``net`` in place with AdamW (linear warm-up, cosine decay); returns the loss history and time.
 
     ``curves`` (``stages.common.curves.Curves``), when given, receives the same points as the history
     under ``<desc>/<loss>`` so the run can be watched in TensorBoard.
+
+    Resuming: with ``save``, every ``save_every`` steps and after the last one the loop hands
+    ``save`` its whole state (weights, optimiser, schedule, the mask generator, the clip sampler's
+    and torch's global RNG, history, curve points, seconds so far); a later call given that dict as
+    ``resume`` continues from it and ends with the weights, history and RNG states a run without
+    the interruption has (tests/train_wm/test_resume.py). ``seconds`` counts the training time of
+    every part.
     """
     net.train()
     gen = torch.Generator().manual_seed(seed)
@@ -90,10 +101,20 @@ def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, b
     warmup = max(1, steps // 20)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: min(1.0, (s + 1) / warmup) * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(s / steps, 1.0)))))
-    history, t0, ema = [], time.perf_counter(), None
+    history, points, ema, start, before = [], [], None, 0, 0.0
+    if resume is not None:
+        start, before, history, points, ema = _restore(resume, net, opt, sched, gen, sampler)
+        if curves is not None:  # the curves the interrupted run wrote went with its staging directory
+            for tag, v, s in points:
+                curves.scalar(tag, v, s)
+        if progress is not None:
+            progress.update(start)
+        if log is not None:
+            log.info("%s resumed at step %d/%d from a checkpoint", desc, start, steps)
+    t0 = time.perf_counter()
     # bf16 autocast only on CUDA: on a 2-core CPU without native bf16, bf16 matmuls ran at ~1 GFLOP/s (fp32 ~85)
     use_bf16 = torch.device(device).type == "cuda"
-    for step in range(steps):
+    for step in range(start, steps):
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_bf16):
             out = losses(net, sampler.sample(batch_size, device), gen, done_kind, changed_weight, done_balance,
                          context_noise, self_context)
@@ -109,14 +130,38 @@ def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, b
         ema = vals if ema is None else {k: 0.9 * ema[k] + 0.1 * vals[k] for k in vals}
         if step % max(1, steps // 50) == 0 or step == steps - 1:
             history.append({"step": step, **vals})
+            new = [(f"{desc}/{k}", v, step) for k, v in vals.items()] + [(f"{desc}/lr", sched.get_last_lr()[0], step)]
+            points += new
             if curves is not None:
-                for k, v in vals.items():
-                    curves.scalar(f"{desc}/{k}", v, step)
-                curves.scalar(f"{desc}/lr", sched.get_last_lr()[0], step)
+                for tag, v, s in new:
+                    curves.scalar(tag, v, s)
         if progress is not None:
             progress.update(1)
             progress.postfix(ce=f"{ema['ce']:.3f}", acc=f"{ema['acc']:.2f}", done=f"{ema['done']:.3f}")
         if log is not None and (step % max(1, steps // 10) == 0 or step == steps - 1):
             log.info("%s step %d/%d ce %.4f acc %.3f done %.4f", desc, step, steps, ema["ce"], ema["acc"], ema["done"])
+        if save is not None and (step == steps - 1 or (save_every > 0 and (step + 1) % save_every == 0)):
+            save(_state(step + 1, before + time.perf_counter() - t0, history, points, ema, net, opt, sched, gen, sampler))
     net.eval()
-    return {"history": history, "seconds": time.perf_counter() - t0, "final": ema}
+    return {"history": history, "seconds": before + time.perf_counter() - t0, "final": ema}
+
+
+def _state(step: int, seconds: float, history: list, points: list, ema: dict | None, net, opt, sched,
+           gen: torch.Generator, sampler: ClipSampler) -> dict:
+    """Everything the loop's remaining steps depend on, after ``step`` steps: copies, which later steps
+    leave alone (the optimiser's state dict holds its live moment tensors)."""
+    return {"step": step, "seconds": seconds, "history": list(history), "points": list(points), "ema": ema,
+            "net": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
+            "opt": copy.deepcopy(opt.state_dict()), "sched": sched.state_dict(), "gen": gen.get_state(),
+            "sampler": sampler.rng.bit_generator.state, "torch_rng": torch.get_rng_state()}
+
+
+def _restore(state: dict, net, opt, sched, gen: torch.Generator, sampler: ClipSampler) -> tuple:
+    """Load ``state`` (from ``_state``) into the loop's objects; returns (step, seconds, history, points, ema)."""
+    net.load_state_dict(state["net"])
+    opt.load_state_dict(state["opt"])
+    sched.load_state_dict(state["sched"])
+    gen.set_state(state["gen"])
+    sampler.rng.bit_generator.state = state["sampler"]
+    torch.set_rng_state(state["torch_rng"])
+    return state["step"], state["seconds"], list(state["history"]), list(state["points"]), state["ema"]
