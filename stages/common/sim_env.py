@@ -61,6 +61,30 @@ def keep_renderer(env: gym.Env) -> None:
     _KEPT_RENDERERS[str(device)] = sapien.render.RenderSystem(device)
 
 
+def freeze_heap_once() -> None:
+    """Before a process's first simulator: collect garbage once and move every live object into the
+    collector's permanent generation (``gc.freeze``), once per process.
+
+    ManiSkill calls ``gc.collect()`` whenever it builds or clears a scene (twice per env built); in
+    a process holding torch, the tokenizer and a policy each call walked millions of objects,
+    0.26 s (toy evaluate, cProfile: 64 calls, 16.3 s of its 60 s). Frozen objects are skipped by
+    later collections (those calls then took 0.09 s); objects made later are collected as before,
+    and none is freed any later than by reference counting, so only cyclic garbage among what was
+    alive at the freeze would stay.
+    """
+    global _FROZEN
+    if _FROZEN:
+        return
+    import gc
+
+    gc.collect()
+    gc.freeze()
+    _FROZEN = True
+
+
+_FROZEN = False
+
+
 class SimTaskEnv(gym.Env):
     """ManiSkill task env -> {codes, proprio, instruction} observations, rule reward, success = terminated."""
 
@@ -98,6 +122,7 @@ class SimTaskEnv(gym.Env):
         while len(self._envs) >= self.cache_size:
             _, old = self._envs.popitem(last=False)
             old.close()
+        freeze_heap_once()
         env = make_task_env(spec.task, spec.scene, image_size=self.image_size, robot_mesh=self.robot_mesh)
         keep_renderer(env)
         self._envs[spec.key] = env

@@ -81,8 +81,8 @@ SEED_BASE = 1_000_000  # collection seeds are small; evaluation states are new o
 
 
 def run(ctx) -> None:
-    from stages.evaluate.jobs import build_jobs, snapshot_jobs
-    from stages.evaluate.episodes import close_sims, run_job
+    from stages.evaluate.jobs import build_jobs, environment_groups, snapshot_jobs, ungroup
+    from stages.evaluate.episodes import close_sims, run_group
     from stages.evaluate.writeup import write_everything
 
     from stages.rl import read_rl_facts
@@ -95,8 +95,11 @@ def run(ctx) -> None:
     jobs = build_jobs(ctx, cfg, facts)
     snaps = snapshot_jobs(ctx, cfg, facts)
     ctx.log.info("evaluate: %d jobs (%d episodes) + %d snapshot jobs", len(jobs), sum(len(j.seeds) for j in jobs), len(snaps))
+    todo = jobs + snaps
+    groups = environment_groups(todo)
     try:
-        results = [r for rs in ctx.map(run_job, jobs + snaps, desc="evaluate episodes") for r in rs]
+        done = ctx.map(run_group, [[todo[i] for i in g] for g in groups], desc="evaluate scenes")
+        results = [r for rs in ungroup(done, groups) for r in rs]
     finally:
         close_sims()  # the in-process (jobs=1) path keeps its simulator between jobs
     with open(ctx.out / "results.jsonl", "w") as f:

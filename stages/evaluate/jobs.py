@@ -112,3 +112,29 @@ def snapshot_jobs(ctx, cfg, facts: dict) -> list[Job]:
                                     scenes[(task, split)], n, seed0, ctx, cfg, text, False,
                                     int(facts["frame_skip"]))
     return jobs
+
+
+def environment_groups(jobs: list[Job]) -> list[list[int]]:
+    """``jobs``' indices grouped by (task, scene, split), in build order within and across groups: the
+    unit of work a worker runs (``episodes.run_group``).
+
+    Jobs are built policy by policy, so a worker taking them one at a time met another (task, scene)
+    at nearly every job and rebuilt its simulator (toy: 32 builds for 40 episodes, each ~0.6 s plus
+    ManiSkill's garbage collection at build and close). A group builds its scene once and runs every
+    policy's jobs on it in a fixed order; a scene reused by another worker's later job would replay
+    differently (docs/evaluate.md), and no two groups share a scene, so outcomes do not depend on
+    which worker ran what.
+    """
+    groups: dict[tuple, list[int]] = {}
+    for i, j in enumerate(jobs):
+        groups.setdefault((j.task, j.scene["scene_id"], j.split), []).append(i)
+    return list(groups.values())
+
+
+def ungroup(done: list[list], groups: list[list[int]]) -> list:
+    """``done[g][k]`` is the result of job ``groups[g][k]``: the results in the jobs' own order."""
+    out = [None] * sum(len(g) for g in groups)
+    for group, results in zip(groups, done):
+        for i, r in zip(group, results, strict=True):
+            out[i] = r
+    return out

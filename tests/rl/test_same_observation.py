@@ -156,6 +156,9 @@ def test_a_simulator_built_after_the_last_one_closed_renders_the_same_pixels_wit
         finally:
             sim.close()
         assert device in sim_env._KEPT_RENDERERS  # held past the close
+    import gc
+
+    assert sim_env._FROZEN and gc.get_freeze_count() > 0  # the heap alive before the first simulator is frozen
     assert len(frames[0]) == len(frames[1]) == 4
     for a, b in zip(*frames):
         np.testing.assert_array_equal(a, b)
