@@ -42,8 +42,20 @@ def artifact(store: Path, stage: str) -> Path:
 
 
 def shown(store: Path, stage: str, *sets: str) -> Path:
-    """The artifact of ``stage`` at the toy profile's key, under ``sets`` if given (``pipeline show``)."""
-    return Path(cli(store, "show", stage, "--profile", "toy", *sets).stdout.splitlines()[1].removeprefix("path: "))
+    """The artifact of ``stage`` at the toy profile's key, under ``sets`` if given (``pipeline show``).
+
+    In this process: the CLI's own ``main``, without the ~3 s a fresh interpreter takes to import it
+    (this module asks ~20 times; ``test_all_eight_stages...`` runs ``show`` as a subprocess)."""
+    import contextlib
+    import io
+
+    from pipeline.__main__ import main
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        rc = main(["show", stage, "--profile", "toy", *sets, "--store", str(store), "--file", str(REPO / "pipeline.yaml")])
+    assert rc == 0, f"pipeline show {stage} {' '.join(sets)} exited {rc}\n{out.getvalue()}"
+    return Path(out.getvalue().splitlines()[1].removeprefix("path: "))
 
 
 @pytest.fixture(scope="module")
