@@ -176,15 +176,18 @@ def test_same_seed_same_evaluation(store):
 
 def test_reward_sweep_reuses_the_shared_stages(store):
     # the imagined-success check is the fixture run's to test; here it would cost ~15 s in each of 12 rl nodes
-    proc = cli(store, "sweep", "rewards", "--until", "rl", "--profile", "toy", "--set", "rl.precision_envs=0")
+    # two of the sweep's three seeds (--axis): the sharing is the same, and each seed costs an sft, a
+    # wm_play and four rl nodes
+    proc = cli(store, "sweep", "rewards", "--until", "rl", "--profile", "toy", "--set", "rl.precision_envs=0",
+               "--axis", "sft.seed+wm_play.seed+rl.seed=[0, 1]")
     acts = actions(proc)
     for s in ("collect", "tokenize", "train_wm", "goals"):
         assert acts[(s, "ran")] == 0 and acts[(s, "cached")] == 1
-    assert acts[("rl", "ran")] + acts[("rl", "cached")] == 12
+    assert acts[("rl", "ran")] + acts[("rl", "cached")] == 8
     # one SFT policy and one play-tuned world model per seed, shared by the four reward points
     # (seed 0's are the fixture run's)
     for s in ("sft", "wm_play"):
-        assert acts[(s, "ran")] == 2 and acts[(s, "cached")] == 1, s
+        assert acts[(s, "ran")] == 1 and acts[(s, "cached")] == 1, s
     # PPO in the simulator reads no play-tuned world model (stages.rl.unread_needs): not in its key
     readers = {json.loads(m.read_text())["key_inputs"]["config"]["reward"]: "wm_play" in json.loads(m.read_text())["key_inputs"]["inputs"]
                for m in (store / "rl").glob("*/*/manifest.json")}
@@ -440,7 +443,7 @@ def test_wm_play_killed_during_its_fine_tune_resumes_from_its_play_and_matches_a
     import signal
     import time
 
-    args = ["run", "--profile", "toy", "--until", "wm_play", "--set", "wm_play.steps=400", "--store", str(store)]
+    args = ["run", "--profile", "toy", "--until", "wm_play", "--set", "wm_play.steps=60", "--store", str(store)]
     proc = subprocess.Popen([sys.executable, "-m", "pipeline", *args], cwd=REPO, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 600
@@ -450,10 +453,10 @@ def test_wm_play_killed_during_its_fine_tune_resumes_from_its_play_and_matches_a
         time.sleep(0.05)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-    status = cli(store, "status", "--profile", "toy", "--until", "wm_play", "--set", "wm_play.steps=400").stdout
+    status = cli(store, "status", "--profile", "toy", "--until", "wm_play", "--set", "wm_play.steps=60").stdout
     assert "resumes from checkpoints: play" in status
     resumed = cli(store, *args[:-2])
-    play = shown(store, "wm_play", "--set", "wm_play.steps=400")
+    play = shown(store, "wm_play", "--set", "wm_play.steps=60")
     log = (play / "log.txt").read_text()
     assert "resumed from an earlier run's checkpoint" in log and "plays in ManiSkill" not in resumed.stderr
     assert not list((store / "partial" / "wm_play").glob(f"{play.name}*"))  # dropped at commit
