@@ -69,8 +69,8 @@ def freeze_heap_once() -> None:
     a process holding torch, the tokenizer and a policy each call walked millions of objects,
     0.26 s (toy evaluate, cProfile: 64 calls, 16.3 s of its 60 s). Frozen objects are skipped by
     later collections (those calls then took 0.09 s); objects made later are collected as before,
-    and none is freed any later than by reference counting, so only cyclic garbage among what was
-    alive at the freeze would stay.
+    and frozen ones are still freed when their reference count drops to zero: only cyclic garbage
+    among what was alive at the freeze stays.
     """
     global _FROZEN
     if _FROZEN:

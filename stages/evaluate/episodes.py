@@ -73,7 +73,7 @@ def close_sims() -> None:
     _POLICIES.clear()
 
 
-_POLICIES: dict = {}  # per worker process: (policy path, device) -> the loaded policy, reused across jobs
+_POLICIES: dict = {}  # per worker process: (policy path, mtime, size, device) -> the loaded policy, reused across jobs
 
 
 def _policy_for(job: Job):
