@@ -49,6 +49,7 @@ class Progress:
         else:
             self.mode = "lines"
         self.total, self.desc, self.unit, self.n = total, desc, unit, 0
+        self._skipped = 0  # items done by an earlier run (resumed): counted in n, not in the rate
         self._clock, self._interval, self._stream = clock, interval, stream
         self._t0 = self._last_line = self._last_item = clock()
         self._lines = 0
@@ -69,6 +70,15 @@ class Progress:
                 self._bar.update(n)
             elif self.mode == "lines" and self._last_item - self._last_line >= self._interval:
                 self._print_line()
+
+    def resumed(self, n: int) -> None:
+        """Count ``n`` items an earlier, interrupted run already did: they advance ``n`` (and the
+        bar) but not the rate, so the ETA after a resume reflects this run's own speed."""
+        with self._lock:
+            self.n += n
+            self._skipped += n
+            if self._bar is not None:
+                self._bar.update(n)
 
     def beat(self) -> bool:
         """Print the line if an interval passed since the last one (the heartbeat); True if printed."""
@@ -94,8 +104,8 @@ class Progress:
 
     @property
     def rate(self) -> float:
-        """Items per second since the bar was created."""
-        return self.n / max(self._clock() - self._t0, 1e-9)
+        """Items per second since the bar was created (items counted by :meth:`resumed` left out)."""
+        return (self.n - self._skipped) / max(self._clock() - self._t0, 1e-9)
 
     def line(self, idle: float | None = None) -> str:
         """``desc done/total (pct), rate unit/s, ETA h:mm:ss, postfix`` as of now.

@@ -108,7 +108,7 @@ def train_world_model(net: WorldModelNet, sampler: ClipSampler, *, steps: int, b
             for tag, v, s in points:
                 curves.scalar(tag, v, s)
         if progress is not None:
-            progress.update(start)
+            progress.resumed(start)  # counted, but not in the rate: the ETA is this run's
         if log is not None:
             log.info("%s resumed at step %d/%d from a checkpoint", desc, start, steps)
     t0 = time.perf_counter()

@@ -104,3 +104,14 @@ def test_the_heartbeat_thread_keeps_a_log_alive_and_stops_at_close(monkeypatch):
     after = out.getvalue()
     time.sleep(0.2)
     assert out.getvalue() == after  # nothing printed once closed
+
+
+def test_resumed_items_count_but_not_in_the_rate(monkeypatch):
+    """A run resumed at 300/400 that then does 10 items in 30 s: 3 s/it, so the 90 left take 4.5
+    min, not the ~9 s that counting the resumed 300 in the rate would promise."""
+    bar, clock, out = _progress(monkeypatch, heartbeat=False)
+    bar.resumed(300)
+    assert bar.n == 300 and bar.rate == 0
+    clock.t += 30.0
+    bar.update(10)
+    assert out.getvalue() == "  train_wm: steps 310/400 (78%), 3 s/it, ETA 0:04:30\n"
