@@ -12,7 +12,10 @@ through the same tokenizer. Both use the same PPO settings and policy. An env st
 in both: one world-model frame = ``frame_skip`` control steps, which the simulator env runs by
 repeating the action (stages/common/sim_env.py), so both advance the same robot time per step.
 
-    .venv/bin/python benchmarks/rl_throughput.py [--wm-steps 2048] [--sim-steps 256] [--num-envs 16] [--device cuda]
+    .venv/bin/python benchmarks/rl_throughput.py [--wm-steps 2048] [--sim-steps 256] [--num-envs 16] [--threads N] [--device cuda]
+
+On a CPU both envs run on ``--threads`` torch threads, by default pipeline.yaml's ``jobs``: the rl stage
+of a single run uses that many (``ctx.jobs``).
 
 The instruction's embedding is a fixed random unit vector (no text-encoder weights needed).
 """
@@ -106,9 +109,16 @@ def main() -> None:
     ap.add_argument("--device", default="cpu",
                     help="torch device of the tokenizer, world model, LPIPS and PPO in both envs, as the rl stage's "
                          "--device (the simulator itself always runs on the CPU)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch threads on a CPU, in both envs (default: pipeline.yaml's jobs, what the rl stage "
+                         "of a single run is given)")
     args = ap.parse_args()
+    if args.threads is None:
+        from pipeline.spec import load_spec
+
+        args.threads = load_spec(Path(__file__).resolve().parents[1] / "pipeline.yaml").jobs
     if args.device == "cpu":
-        torch.set_num_threads(1)  # as the rl stage on a CPU
+        torch.set_num_threads(args.threads)
     dev = args.device
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
@@ -149,7 +159,7 @@ def main() -> None:
     sim_rate = timed_learn(sim_env, args.sim_steps, args.sim_envs, dev)
     sim_env.close()
 
-    where = "1 torch thread" if dev == "cpu" else f"device {dev} ({torch.cuda.get_device_name(dev)})"
+    where = f"{torch.get_num_threads()} torch thread(s)" if dev == "cpu" else f"device {dev} ({torch.cuda.get_device_name(dev)})"
     print(f"PPO env (= policy) steps/s, updates included (one run, {where}, this machine); "
           f"one step = {k} control steps in both envs")
     print(f"  world-model env: {args.num_envs} batched envs, small-profile action WM "

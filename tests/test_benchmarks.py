@@ -1,7 +1,7 @@
-"""Two of the benchmarks under benchmarks/ run, each at its smallest size through its real entry point.
+"""Three of the benchmarks under benchmarks/ run, each at its smallest size through its real entry point.
 
 They are not timed here (ratios are theirs to print); this only keeps them from rotting when the
-code they call changes (both had gone stale when the helpers they import gained a device). The
+code they call changes (two had gone stale when the helpers they import gained a device). The
 others (collect_throughput, engine_overhead, observation_probe, rl_throughput, wm_rollout) are not run here.
 """
 from __future__ import annotations
@@ -30,3 +30,8 @@ def test_wm_precision_prints_its_ratios():
 def test_sim_episode_prints_its_ratios():
     out = run("benchmarks/sim_episode.py", "--episodes", "1", "--steps", "2")
     assert "ratio fresh/held" in out and "ratio held/kept" in out and "ratio kept/cached" in out
+
+
+def test_wm_train_threads_prints_its_ratio():
+    out = run("benchmarks/wm_train_threads.py", "--steps", "1", "--repeats", "1")
+    assert "1 thread(s):" in out and "2 thread(s):" in out and "ratio 1 thread(s) / 2" in out

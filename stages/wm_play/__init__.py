@@ -34,9 +34,15 @@ Outputs:
 Key includes:
     this config and the keys of collect, tokenize, train_wm and sft.
 
-Checkpoint:
-    the play, once finished (``ctx.checkpoints()``, pipeline.checkpoints): a run killed during the
-    fine-tune resumes from it instead of playing again.
+Checkpoints (``ctx.checkpoints()``, pipeline.checkpoints):
+    ``play``, the play once finished: a run killed during the fine-tune plays no more;
+    ``finetune``, the fine-tune's whole training state (train_wm's format), saved every twelfth of
+    its steps and after the last: a run killed during the fine-tune resumes at the last saved step and
+    commits what an uninterrupted run commits.
+
+Threads (CPU): the play runs on one torch thread (a policy step is a batch of one, the simulator is
+serial), the fine-tune on ``ctx.jobs`` (the cores the executor gave this node): its batches use both
+cores of a 2-core machine (docs/rl.md, "wm_play").
 
 Toy profile:
     two play episodes of at most 15 steps and three fine-tuning steps: the real path, tiny.
@@ -92,6 +98,7 @@ def _play_and_finetune(ctx, cfg: Config) -> dict:
     from stages.sft.observation import ObservationFn
     from stages.sft.policy import POLICY_FILE, load_policy
     from stages.tokenize.tokenizer import load_tokenizer
+    from stages.train_wm import CHECKPOINTS_PER_MODEL, training_checkpoint
     from stages.train_wm.data import load_episodes
     from stages.train_wm.rollout import CHECKPOINTS, TEXT_EMBEDDINGS, load_world_model, save_world_model
     from stages.wm_play.play import PLAY_SEED, finetune_on_play, load_play, play_episodes, save_play
@@ -135,9 +142,13 @@ def _play_and_finetune(ctx, cfg: Config) -> dict:
     train = set(split["train"])
     train_eps = [e for e in load_episodes(ctx.input("collect"), ctx.input("tokenize"), frame_skip=wm.spec.frame_skip)
                  if e.episode_id in train]
+    if ctx.device == "cpu":
+        torch.set_num_threads(max(1, ctx.jobs))  # training batches: every core the node was given
+    resume, save = training_checkpoint(checkpoints, "finetune")
     with ctx.progress(cfg.steps, "wm_play: world model on the play", unit="step") as bar:
         tuned, result = finetune_on_play(wm, wm_dir, train_eps, play, steps=cfg.steps, lr=cfg.lr, weight=cfg.weight,
-                                         device=ctx.device, progress=bar, log=ctx.log)
+                                         device=ctx.device, progress=bar, log=ctx.log, resume=resume, save=save,
+                                         save_every=max(1, cfg.steps // CHECKPOINTS_PER_MODEL))
     save_world_model(tuned.net, ctx.out / CHECKPOINTS["action"],
                      {"decode_steps": tuned.decode_steps, "temperature": tuned.temperature})
     out = {"episodes": len(play), "successes": sum(r["success"] for r in rows),

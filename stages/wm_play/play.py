@@ -61,10 +61,12 @@ def load_play(directory: Path) -> list:
 
 
 def finetune_on_play(wm, train_wm_dir, train_eps: list, play: list, *, steps: int, lr: float, weight: int,
-                     device: str, progress=None, log=None):
+                     device: str, progress=None, log=None, resume: dict | None = None, save=None, save_every: int = 0):
     """A copy of ``wm`` (``stages.train_wm.rollout.WorldModel``) trained ``steps`` more steps on
     ``train_eps`` + ``play`` x ``weight``, with train_wm's own losses and batch size (from its manifest).
-    Returns (the copy in eval mode, the training result of ``train_world_model``)."""
+    Returns (the copy in eval mode, the training result of ``train_world_model``). ``resume``, ``save``
+    and ``save_every`` are ``train_world_model``'s: a fine-tune resumed from a saved state ends where
+    the uninterrupted one does (tests/wm_play/test_play.py)."""
     from stages.train_wm.data import ClipSampler
     from stages.train_wm.rollout import TEXT_EMBEDDINGS
     from stages.train_wm.train import train_world_model
@@ -81,6 +83,7 @@ def finetune_on_play(wm, train_wm_dir, train_eps: list, play: list, *, steps: in
                                done_kind=cfg["done_loss"], seed=cfg["seed"] + 7, device=device,
                                changed_weight=cfg["changed_weight"], done_balance=cfg["done_balance"],
                                context_noise=cfg.get("context_noise", 0.0), self_context=cfg.get("self_context", 0.0),
-                               progress=progress, log=log, desc="play_wm")
+                               progress=progress, log=log, desc="play_wm", resume=resume, save=save,
+                               save_every=save_every)
     tuned.net.eval()
     return tuned, result

@@ -5,6 +5,7 @@ Slow by nature (every stage trains or simulates for real): about ten minutes on 
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from collections import Counter
@@ -437,8 +438,9 @@ def test_the_world_model_is_fine_tuned_on_the_sft_policys_play(store):
 
 
 def test_wm_play_killed_during_its_fine_tune_resumes_from_its_play_and_matches_a_fresh_run(store):
-    """The play is a checkpoint (pipeline.checkpoints): a run killed in the fine-tune plays no more on
-    its rerun, and the artifact equals one made from scratch (``--force``) at the same key."""
+    """The play and the fine-tune's state are checkpoints (pipeline.checkpoints): a run killed in the
+    fine-tune, after a fine-tune checkpoint, plays no more on its rerun and resumes the fine-tune where
+    it was saved, and the artifact equals one made from scratch (``--force``) at the same key."""
     import os
     import signal
     import time
@@ -447,18 +449,19 @@ def test_wm_play_killed_during_its_fine_tune_resumes_from_its_play_and_matches_a
     proc = subprocess.Popen([sys.executable, "-m", "pipeline", *args], cwd=REPO, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 600
-    while not list((store / "partial" / "wm_play").glob("*/play/.checkpoint.json")):
+    while not list((store / "partial" / "wm_play").glob("*/finetune/.checkpoint.json")):
         assert proc.poll() is None, "wm_play ended before it was killed (raise its steps)"
         assert time.time() < deadline
         time.sleep(0.05)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     status = cli(store, "status", "--profile", "toy", "--until", "wm_play", "--set", "wm_play.steps=60").stdout
-    assert "resumes from checkpoints: play" in status
+    assert "resumes from checkpoints: finetune, play" in status
     resumed = cli(store, *args[:-2])
     play = shown(store, "wm_play", "--set", "wm_play.steps=60")
     log = (play / "log.txt").read_text()
     assert "resumed from an earlier run's checkpoint" in log and "plays in ManiSkill" not in resumed.stderr
+    assert re.search(r"play_wm resumed at step [1-9]\d*/60 from a checkpoint", log), log
     assert not list((store / "partial" / "wm_play").glob(f"{play.name}*"))  # dropped at commit
     digests = json.loads((play / "manifest.json").read_text())["files"]
     cli(store, *args[:-2], "--force", "wm_play")

@@ -46,6 +46,45 @@ def test_the_fine_tune_trains_a_copy_and_leaves_the_loaded_model_alone(tmp_path)
     assert tuned.proprio_head is not None and result["final"]["ce"] > 0
 
 
+def test_a_fine_tune_resumed_from_its_mid_run_state_ends_with_the_uninterrupted_weights(tmp_path):
+    """The stage's ``finetune`` checkpoint: the state saved after step 2 of 5, handed back as ``resume``
+    to a fresh copy of the loaded model (another global RNG state, as in a new process), ends with
+    the weights and history of the run that was never interrupted."""
+    from stages.wm_play.play import finetune_on_play
+
+    (tmp_path / "manifest.json").write_text(json.dumps({"key_inputs": {"config": WM_CONFIG}}))
+    (tmp_path / "text_embeddings.json").write_text(json.dumps(text_embeddings(["push the cube"])))
+    tok = tiny_tokenizer()
+    wm = tiny_action_wm(tok)
+    train, play = episodes(tok, 3, "optimal", True, 0), episodes(tok, 2, "play", False, 1)
+    states: list[dict] = []
+    torch.manual_seed(0)
+    ref, ref_result = finetune_on_play(wm, tmp_path, train, play, steps=5, lr=1e-3, weight=2, device="cpu",
+                                       save=states.append, save_every=2)
+    assert [s["step"] for s in states] == [2, 4, 5]
+    class Counted:  # the steps the resumed call trains itself, and those it takes as done
+        def __init__(self):
+            self.done, self.skipped = 0, 0
+
+        def update(self, n=1):
+            self.done += n
+
+        def resumed(self, n):
+            self.skipped += n
+
+        def postfix(self, **kv):
+            pass
+
+    torch.manual_seed(123)
+    counted = Counted()
+    resumed, result = finetune_on_play(wm, tmp_path, train, play, steps=5, lr=1e-3, weight=2, device="cpu",
+                                       resume=states[0], progress=counted)
+    assert (counted.skipped, counted.done) == (2, 3)  # steps 3-5 trained, 1-2 restored
+    for k, v in ref.net.state_dict().items():
+        assert torch.equal(v, resumed.net.state_dict()[k]), k
+    assert result["history"] == ref_result["history"]
+
+
 def test_play_instructions_need_a_text_embedding(tmp_path):
     from stages.wm_play.play import finetune_on_play
 
