@@ -262,7 +262,7 @@ def run(ctx) -> None:
 
     cfg: Config = ctx.config
     if ctx.device == "cpu":  # every core the executor gave this node: the world-model env's batched step,
-        torch.set_num_threads(max(1, ctx.jobs))  # decoding and LPIPS run 1.4-1.5x faster on 2 than on 1 (docs/rl.md)
+        torch.set_num_threads(max(1, ctx.jobs))  # decoding and LPIPS ran 1.3-1.7x faster on 2 than on 1 (docs/rl.md)
     inputs = RLInputs.load(ctx, cfg)
     metrics = train(ctx, cfg, inputs)
     facts = {"reward": cfg.reward, "success_payout": cfg.success_payout,
