@@ -20,6 +20,8 @@ import time
 from pathlib import Path
 from types import SimpleNamespace
 
+import torch
+
 ACCEPT_SEED = 60  # evaluate-seed offset of the validation states
 
 
@@ -63,13 +65,15 @@ def acceptance_test(ctx, cfg, inp, policy_dir: Path) -> tuple[dict, list[dict]]:
     jobs = build_jobs(shim, ecfg, {"tasks": inp.tasks, "frame_skip": inp.sft_info["frame_skip"]})
     t0 = time.perf_counter()
     rows = []
-    try:
+    threads = torch.get_num_threads()  # the evaluate jobs' simulator pins one thread (a worker's setting):
+    try:  # the rest of the stage gets its own count back
         with ctx.progress(sum(len(j.seeds) for j in jobs), "rl: acceptance test (SFT and PPO, IND)", unit="ep") as bar:
             for job in jobs:
                 rows += run_job(job)
                 bar.update(len(job.seeds))
     finally:
         close_sims()
+        torch.set_num_threads(threads)
     result = decide([r for r in rows if r["policy"] == "sft"], [r for r in rows if r["policy"] == "ppo"], cfg.accept_margin)
     result.update({"episodes": len(rows), "seconds": time.perf_counter() - t0, "evaluate_seed": ecfg.seed})
     return result, rows

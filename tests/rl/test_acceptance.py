@@ -49,3 +49,46 @@ def test_the_validation_states_lie_at_evaluate_seed_60_plus_the_rl_seed():
     for seed in (0, 7):
         ecfg = validation_config(RlConfig(seed=seed, accept_episodes=3))
         assert (ecfg.seed, ecfg.episodes, ecfg.splits, ecfg.policies) == (ACCEPT_SEED + seed, 3, ["ind"], ["sft", "ppo"])
+
+
+def test_the_acceptance_episodes_leave_the_stages_thread_count_as_they_found_it(monkeypatch, tmp_path):
+    """The evaluate jobs' simulator sets one torch thread (right in an evaluate worker); inside the rl
+    stage, which runs on ``ctx.jobs`` threads, the imagined-success check after the test must not
+    inherit it. The jobs here are fakes that do what the real ones do to the thread count."""
+    from types import SimpleNamespace
+
+    import torch
+
+    import stages.evaluate.episodes as episodes
+    import stages.evaluate.jobs as jobs
+    from stages.rl import Config
+    from stages.rl.acceptance import acceptance_test
+
+    job = lambda policy: SimpleNamespace(policy=policy, seeds=[0, 1])  # noqa: E731
+
+    def fake_run(j):
+        torch.set_num_threads(1)
+        return rows(j.policy, [1, 0])
+
+    monkeypatch.setattr(jobs, "build_jobs", lambda *a, **k: [job("sft"), job("ppo")])
+    monkeypatch.setattr(episodes, "run_job", fake_run)
+    ctx = SimpleNamespace(input=lambda name: tmp_path, progress=lambda *a, **k: _Bar())
+    inp = SimpleNamespace(device="cpu", tasks=["push"], sft_info={"frame_skip": 4})
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        result, got = acceptance_test(ctx, Config(accept_episodes=2), inp, tmp_path)
+        assert torch.get_num_threads() == 2 and result["episodes"] == 4 and result["kept"] == "sft"
+    finally:
+        torch.set_num_threads(before)
+
+
+class _Bar:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def update(self, n=1):
+        pass
