@@ -22,9 +22,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.train_wm import Config  # noqa: E402
+from stages.train_wm import Config, model_spec  # noqa: E402
 from stages.train_wm.data import ClipSampler, Episode  # noqa: E402
-from stages.train_wm.model import WMSpec, WorldModelNet  # noqa: E402
+from stages.train_wm.model import WorldModelNet  # noqa: E402
 from stages.train_wm.train import train_world_model  # noqa: E402
 
 TOKENS = 2 * 8 * 8  # two views, one 8 x 8 grid each, stacked to (16, 8) (the small profile's tokenizer)
@@ -44,10 +44,7 @@ def seconds_per_step(threads: int, steps: int, episodes: list[Episode], c: Confi
     """Mean seconds per training step on ``threads`` torch threads (after one untimed warm-up step)."""
     torch.set_num_threads(threads)
     torch.manual_seed(0)
-    spec = WMSpec(kind="action", vocab_size=VOCAB, grid=(16, 8), dim=c.dim, depth=c.depth, heads=c.heads,
-                  head_depth=c.head_depth, mlp_ratio=c.mlp_ratio, window=c.window, control_tokens=c.control_tokens,
-                  frame_skip=c.frame_skip)
-    net = WorldModelNet(spec)
+    net = WorldModelNet(model_spec(c, "action", VOCAB, (16, 8)))  # train_wm's own architecture for this config
     net.set_action_stats(torch.from_numpy(np.concatenate([e.actions for e in episodes])))
     text = {"push the cube": np.full(384, 384**-0.5, np.float32)}
     kw = dict(batch_size=c.batch_size, lr=c.lr, weight_decay=c.weight_decay, done_weight=c.done_weight,
