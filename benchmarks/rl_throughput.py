@@ -12,7 +12,12 @@ through the same tokenizer. Both use the same PPO settings and policy. An env st
 in both: one world-model frame = ``frame_skip`` control steps, which the simulator env runs by
 repeating the action (stages/common/sim_env.py), so both advance the same robot time per step.
 
-    .venv/bin/python benchmarks/rl_throughput.py [--wm-steps 2048] [--sim-steps 256] [--num-envs 16] [--threads N] [--device cuda]
+    .venv/bin/python benchmarks/rl_throughput.py [--wm-steps 2048] [--sim-steps 256] [--num-envs 16] [--threads N] [--rounds 3] [--device cuda]
+
+``--rounds`` repeats the three measurements in turn (world model with LPIPS, sparse only,
+ManiSkill) and prints each round's ratio and their median: on a 2-core CPU the ManiSkill side alone
+moved between 36 and 53 steps/s from one run to the next (docs/rl.md, "Throughput"), so one round's
+ratio carries that spread and the rounds show it within one run.
 
 On a CPU both envs run on ``--threads`` torch threads, by default pipeline.yaml's ``jobs``: the rl stage
 of a single run uses that many (``ctx.jobs``).
@@ -109,10 +114,14 @@ def main() -> None:
     ap.add_argument("--device", default="cpu",
                     help="torch device of the tokenizer, world model, LPIPS and PPO in both envs, as the rl stage's "
                          "--device (the simulator itself always runs on the CPU)")
+    ap.add_argument("--rounds", type=int, default=3,
+                    help="measure each env this many times, in turn, and print every round's ratio and the median")
     ap.add_argument("--threads", type=int, default=None,
                     help="torch threads on a CPU, in both envs (default: pipeline.yaml's jobs, what the rl stage "
                          "of a single run is given)")
     args = ap.parse_args()
+    if args.rounds < 1:
+        ap.error(f"--rounds must be >= 1, got {args.rounds}")
     if args.threads is None:
         from pipeline.spec import load_spec
 
@@ -144,31 +153,42 @@ def main() -> None:
     wm = action_wm(tok, dev)
     goal = tok.decode(torch.as_tensor(tokens[None], device=dev))
     reward = WMReward(GoalDistance(*goal, dev, dtype=args.wm_dtype), alpha=2.0, beta=0.02, theta_sps=0.5, num_envs=args.num_envs)
-    wm_env = WorldModelVecEnv(wm, tok, obs_fn, reward, [Start(0, instruction, tokens, first["proprio"])], num_envs=args.num_envs,
-                              max_steps=50, theta_done=0.999, seed=0, device=dev, dtype=args.wm_dtype)
-    wm_rate = timed_learn(wm_env, args.wm_steps, args.num_envs, dev)
-    sparse = WMReward(GoalDistance(*goal, dev, dtype=args.wm_dtype), alpha=2.0, beta=0.0, theta_sps=0.5, num_envs=args.num_envs)
-    sparse_env = WorldModelVecEnv(wm, tok, obs_fn, sparse, [Start(0, instruction, tokens, first["proprio"])],
-                                  num_envs=args.num_envs, max_steps=50, theta_done=0.999, seed=0, device=dev,
-                                  dtype=args.wm_dtype)
-    sparse_rate = timed_learn(sparse_env, args.wm_steps, args.num_envs, dev)
+    def wm_env(beta: float) -> WorldModelVecEnv:
+        reward = WMReward(GoalDistance(*goal, dev, dtype=args.wm_dtype), alpha=2.0, beta=beta, theta_sps=0.5,
+                          num_envs=args.num_envs)
+        return WorldModelVecEnv(wm, tok, obs_fn, reward, [Start(0, instruction, tokens, first["proprio"])],
+                                num_envs=args.num_envs, max_steps=50, theta_done=0.999, seed=0, device=dev,
+                                dtype=args.wm_dtype)
 
     k = wm.spec.frame_skip
+    dense_env, sparse_env = wm_env(0.02), wm_env(0.0)  # wm reward with LPIPS (every frame decoded) / sparse only
     sim_env = DummyVecEnv([lambda i=i: SimTaskEnv([spec], obs_fn, max_steps=50, seed=i,
                                                   action_repeat=k) for i in range(args.sim_envs)])
-    sim_rate = timed_learn(sim_env, args.sim_steps, args.sim_envs, dev)
+    rounds = []  # (with LPIPS, sparse only, ManiSkill) steps/s per round
+    for r in range(args.rounds):
+        rates = (timed_learn(dense_env, args.wm_steps, args.num_envs, dev),
+                 timed_learn(sparse_env, args.wm_steps, args.num_envs, dev),
+                 timed_learn(sim_env, args.sim_steps, args.sim_envs, dev))
+        rounds.append(rates)
+        print(f"  round {r + 1}/{args.rounds}: world model with LPIPS {rates[0]:.1f}, sparse only {rates[1]:.1f}, "
+              f"ManiSkill {rates[2]:.1f} steps/s: ratio {rates[0] / rates[2]:.2f} (sparse only {rates[1] / rates[2]:.2f})",
+              flush=True)
     sim_env.close()
 
+    wm_rate, sparse_rate, sim_rate = (float(np.median([x[i] for x in rounds])) for i in range(3))
+    ratio = [x[0] / x[2] for x in rounds]
+    ratio_sparse = [x[1] / x[2] for x in rounds]
     where = f"{torch.get_num_threads()} torch thread(s)" if dev == "cpu" else f"device {dev} ({torch.cuda.get_device_name(dev)})"
-    print(f"PPO env (= policy) steps/s, updates included (one run, {where}, this machine); "
-          f"one step = {k} control steps in both envs")
+    print(f"PPO env (= policy) steps/s, updates included (one run, {where}, this machine, median of "
+          f"{args.rounds} round(s)); one step = {k} control steps in both envs")
     print(f"  world-model env: {args.num_envs} batched envs, small-profile action WM "
           f"(dim {wm.spec.dim}, depth {wm.spec.depth}, {wm.spec.tokens} tokens/frame, {wm.decode_steps} decoding passes, "
-          f"{wm_env.dtype} (--wm-dtype {args.wm_dtype})), "
+          f"{dense_env.dtype} (--wm-dtype {args.wm_dtype})), "
           f"wm reward with LPIPS: {wm_rate:.1f}")
     print(f"  world-model env, sparse reward only (no frame decoded): {sparse_rate:.1f}")
     print(f"  ManiSkill env:   {args.sim_envs} envs (push, low-poly Panda, 64x64 x 2 views, tokenizer obs), rule reward: {sim_rate:.1f} ({sim_rate * k:.1f} control steps/s)")
-    print(f"  ratio world model / ManiSkill: {wm_rate / sim_rate:.2f} (sparse only: {sparse_rate / sim_rate:.2f})")
+    print(f"  ratio world model / ManiSkill: median {np.median(ratio):.2f} over the rounds, range {min(ratio):.2f}-{max(ratio):.2f} "
+          f"(sparse only: median {np.median(ratio_sparse):.2f}, range {min(ratio_sparse):.2f}-{max(ratio_sparse):.2f})")
 
 
 if __name__ == "__main__":
