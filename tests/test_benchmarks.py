@@ -1,8 +1,8 @@
-"""Three of the benchmarks under benchmarks/ run, each at its smallest size through its real entry point.
+"""Four of the benchmarks under benchmarks/ run, each at its smallest size through its real entry point.
 
 They are not timed here (ratios are theirs to print); this only keeps them from rotting when the
 code they call changes (two had gone stale when the helpers they import gained a device). The
-others (collect_throughput, engine_overhead, observation_probe, rl_throughput, wm_rollout) are not run here.
+others (collect_throughput, engine_overhead, observation_probe, wm_rollout) are not run here.
 """
 from __future__ import annotations
 
@@ -35,3 +35,11 @@ def test_sim_episode_prints_its_ratios():
 def test_wm_train_threads_prints_its_ratio():
     out = run("benchmarks/wm_train_threads.py", "--steps", "1", "--repeats", "1")
     assert "1 thread(s):" in out and "2 thread(s):" in out and "ratio 1 thread(s) / 2" in out
+
+
+@pytest.mark.sim
+def test_rl_throughput_prints_every_round_and_the_median():
+    out = run("benchmarks/rl_throughput.py", "--num-envs", "2", "--sim-envs", "1", "--wm-steps", "64",
+              "--sim-steps", "8", "--rounds", "2", "--threads", "1")
+    assert "round 1/2:" in out and "round 2/2:" in out
+    assert "median of 2 round(s)" in out and "ratio world model / ManiSkill: median" in out
