@@ -152,7 +152,7 @@ def main() -> None:
 
     wm = action_wm(tok, dev)
     goal = tok.decode(torch.as_tensor(tokens[None], device=dev))
-    reward = WMReward(GoalDistance(*goal, dev, dtype=args.wm_dtype), alpha=2.0, beta=0.02, theta_sps=0.5, num_envs=args.num_envs)
+
     def wm_env(beta: float) -> WorldModelVecEnv:
         reward = WMReward(GoalDistance(*goal, dev, dtype=args.wm_dtype), alpha=2.0, beta=beta, theta_sps=0.5,
                           num_envs=args.num_envs)
