@@ -5,7 +5,8 @@ World-model side: the action WM at the ``small`` profile's size (random weights:
 depend on them), ``num_envs`` batched envs, reward = the ``wm`` module (done head + LPIPS to a
 cached goal, so every step decodes its frame), and once more with the sparse term only (beta 0:
 the env decodes no frame); the world model's step, decoding and LPIPS convolutions in ``--wm-dtype``
-(as the rl stage's ``wm_dtype``, default auto: bf16 where this CPU runs it fast). The simulator side's observation
+(as the rl stage's ``wm_dtype``, default auto: bf16 where this CPU runs it fast), the decoder and
+LPIPS network in the memory layout ``stages.common.precision.conv_layout`` times faster here (printed). The simulator side's observation
 encoding stays fp32 in every case (the policy was trained on fp32 tokens). Simulator side: the push task with the low-poly
 Panda, ``sim_envs`` envs in a DummyVecEnv, reward = the task's rule reward; every frame goes
 through the same tokenizer. Both use the same PPO settings and policy. An env step is a policy step
@@ -103,6 +104,42 @@ def timed_learn(env, steps: int, num_envs: int, device: str) -> float:
     return (model.num_timesteps - 64 * num_envs) / (time.perf_counter() - t)
 
 
+class Setup:
+    """What both environments share: the tokenizer, the observation function, a real push scene's
+    first frame (rendered once) as every world-model episode's start and goal, the action WM."""
+
+    def __init__(self, device: str):
+        from stages.collect.sim import default_catalog
+        from stages.common.sim_env import SimSpec, SimTaskEnv
+        from stages.sft.observation import ObservationFn
+
+        self.device = device
+        self.tok = tokenizer(device)
+        scene = next(s for s in default_catalog().values() if s.split == "ind")
+        self.spec = SimSpec("push", scene.to_dict(), instruction="push the object to the goal")  # any text: see instruction_embedding
+        self.obs_fn = ObservationFn(self.tok, instruction_embedding(self.spec.instruction))
+        probe = SimTaskEnv([self.spec], self.obs_fn, max_steps=50, keep_frames=True)
+        first, _ = probe.reset(seed=0)
+        self.instruction, self.proprio = probe.instruction, first["proprio"]
+        third, wrist = probe.frames[0]
+        probe.close()
+        self.tokens = self.tok.encode(third[None], wrist[None]).cpu().numpy()[0]  # (h, w)
+        self.wm = action_wm(self.tok, device)
+        self.goal = self.tok.decode(torch.as_tensor(self.tokens[None], device=device))  # (third, wrist), each (1, 3, S, S)
+
+    def wm_env(self, beta: float, num_envs: int, wm_dtype: str, tok=None):
+        """The world-model env with the ``wm`` reward (beta 0: sparse only, no frame decoded), on ``tok``
+        (default the shared tokenizer)."""
+        from stages.rl.rewards import GoalDistance, WMReward
+        from stages.rl.wm_env import Start, WorldModelVecEnv
+
+        reward = WMReward(GoalDistance(*self.goal, self.device, dtype=wm_dtype), alpha=2.0, beta=beta, theta_sps=0.5,
+                          num_envs=num_envs)
+        return WorldModelVecEnv(self.wm, tok or self.tok, self.obs_fn, reward,
+                                [Start(0, self.instruction, self.tokens, self.proprio)], num_envs=num_envs,
+                                max_steps=50, theta_done=0.999, seed=0, device=self.device, dtype=wm_dtype)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--wm-steps", type=int, default=2048)
@@ -133,32 +170,14 @@ def main() -> None:
 
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    from stages.collect.sim import default_catalog
-    from stages.rl.rewards import GoalDistance, WMReward
-    from stages.common.sim_env import SimSpec, SimTaskEnv
-    from stages.rl.wm_env import Start, WorldModelVecEnv
-    from stages.sft.observation import ObservationFn
+    from stages.common.precision import layout_of
+    from stages.common.sim_env import SimTaskEnv
 
-    tok = tokenizer(dev)
-    scene = next(s for s in default_catalog().values() if s.split == "ind")
-    spec = SimSpec("push", scene.to_dict(), instruction="push the object to the goal")  # any text: see instruction_embedding
-    obs_fn = ObservationFn(tok, instruction_embedding(spec.instruction))
-    probe = SimTaskEnv([spec], obs_fn, max_steps=50, keep_frames=True)
-    first, _ = probe.reset(seed=0)
-    instruction = probe.instruction
-    third, wrist = probe.frames[0]
-    probe.close()
-    tokens = tok.encode(third[None], wrist[None]).cpu().numpy()[0]
+    setup = Setup(dev)
+    tok, obs_fn, spec, wm = setup.tok, setup.obs_fn, setup.spec, setup.wm
 
-    wm = action_wm(tok, dev)
-    goal = tok.decode(torch.as_tensor(tokens[None], device=dev))
-
-    def wm_env(beta: float) -> WorldModelVecEnv:
-        reward = WMReward(GoalDistance(*goal, dev, dtype=args.wm_dtype), alpha=2.0, beta=beta, theta_sps=0.5,
-                          num_envs=args.num_envs)
-        return WorldModelVecEnv(wm, tok, obs_fn, reward, [Start(0, instruction, tokens, first["proprio"])],
-                                num_envs=args.num_envs, max_steps=50, theta_done=0.999, seed=0, device=dev,
-                                dtype=args.wm_dtype)
+    def wm_env(beta: float):
+        return setup.wm_env(beta, args.num_envs, args.wm_dtype)
 
     k = wm.spec.frame_skip
     dense_env, sparse_env = wm_env(0.02), wm_env(0.0)  # wm reward with LPIPS (every frame decoded) / sparse only
@@ -184,7 +203,8 @@ def main() -> None:
     print(f"  world-model env: {args.num_envs} batched envs, small-profile action WM "
           f"(dim {wm.spec.dim}, depth {wm.spec.depth}, {wm.spec.tokens} tokens/frame, {wm.decode_steps} decoding passes, "
           f"{dense_env.dtype} (--wm-dtype {args.wm_dtype})), "
-          f"wm reward with LPIPS: {wm_rate:.1f}")
+          f"wm reward with LPIPS: {wm_rate:.1f} (layouts timed here: decoder {layout_of(tok.net.decoder)}, "
+          f"LPIPS {layout_of(dense_env.reward.distance.net)})")
     print(f"  world-model env, sparse reward only (no frame decoded): {sparse_rate:.1f}")
     print(f"  ManiSkill env:   {args.sim_envs} envs (push, low-poly Panda, 64x64 x 2 views, tokenizer obs), rule reward: {sim_rate:.1f} ({sim_rate * k:.1f} control steps/s)")
     print(f"  ratio world model / ManiSkill: median {np.median(ratio):.2f} over the rounds, range {min(ratio):.2f}-{max(ratio):.2f} "

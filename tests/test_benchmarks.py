@@ -1,4 +1,4 @@
-"""Four of the benchmarks under benchmarks/ run, each at its smallest size through its real entry point.
+"""Five of the benchmarks under benchmarks/ run, each at its smallest size through its real entry point.
 
 They are not timed here (ratios are theirs to print); this only keeps them from rotting when the
 code they call changes (two had gone stale when the helpers they import gained a device). The
@@ -43,3 +43,11 @@ def test_rl_throughput_prints_every_round_and_the_median():
               "--sim-steps", "8", "--rounds", "2", "--threads", "1")
     assert "round 1/2:" in out and "round 2/2:" in out
     assert "median of 2 round(s)" in out and "ratio world model / ManiSkill: median" in out
+
+
+@pytest.mark.sim
+def test_conv_layout_prints_both_layouts_and_the_ratio():
+    out = run("benchmarks/conv_layout.py", "--num-envs", "2", "--steps", "32", "--goals", "2", "--rounds", "1",
+              "--threads", "1")
+    assert "default: decoder default, LPIPS default" in out and "timed: decoder " in out
+    assert "round 1/1:" in out and "timed / default layouts median" in out

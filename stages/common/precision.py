@@ -21,7 +21,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import time
-from typing import Literal
+from typing import Callable, Literal
 
 import torch
 
@@ -59,16 +59,55 @@ def resolved(device: str | torch.device, mode: Precision) -> str:
     return "bf16" if cpu_bf16_speedup() >= FAST_RATIO else "fp32"
 
 
-def conv_layout(module: torch.nn.Module, device: str | torch.device, mode: Precision) -> torch.nn.Module:
-    """``module`` in place in channels-last memory layout where its convolutions run in bf16 on a CPU.
+CHANNELS_LAST_GAIN = 1.1  # fp32 on a CPU: channels-last must be this much faster for ``conv_layout`` to keep it
 
-    oneDNN's bf16 convolutions are faster channels-last (2-core Xeon with AMX, 1 thread: the
-    tokenizer's decoder 33 -> 23 ms, LPIPS features 8.2 -> 4.9 ms for 16 frames); in fp32 it made no
-    difference worth having, so fp32 and CUDA leave the module as it is. Values are unchanged up to
-    rounding; returns ``module``.
+
+def layout_of(module: torch.nn.Module) -> str:
+    """"channels_last" or "default": the layout ``conv_layout`` left ``module`` in ("default" if never given to it)."""
+    return getattr(module, "chosen_layout", "default")
+
+
+def _best_seconds(call: Callable[[], object], repeats: int = 3, calls: int = 2) -> float:
+    call()  # warm-up: oneDNN builds its kernels for the new layout here
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        for _ in range(calls):
+            call()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+@torch.no_grad()
+def conv_layout(module: torch.nn.Module, device: str | torch.device, mode: Precision,
+                probe: Callable[[], object] | None = None) -> torch.nn.Module:
+    """``module`` in place in the memory layout its convolutions run faster in on this CPU; returns ``module``.
+
+    bf16 on a CPU: channels-last, the layout oneDNN's bf16 convolutions are fast in (2-core Xeon with
+    AMX, 1 thread: the tokenizer's decoder 33 -> 23 ms, LPIPS features 8.2 -> 4.9 ms for 16 frames).
+    fp32 on a CPU: it depends on the CPU (that Xeon: channels-last 1.1 ms slower for the decoder; a
+    2-core Xeon without AMX: the decoder 1.1-1.5x faster channels-last, the world-model env with
+    LPIPS 1.10x, benchmarks/conv_layout.py), so with ``probe`` (a call that
+    runs the module on a representative batch, in the caller's precision) both layouts are timed and
+    channels-last is kept if it is at least ``CHANNELS_LAST_GAIN`` times faster; without a probe fp32
+    keeps the default layout. CUDA: unchanged. Values are unchanged up to rounding. The decision is
+    made once per module and precision (``layout_of`` reads it).
     """
-    if torch.device(device).type == "cpu" and resolved(device, mode) == "bf16":
+    precision = resolved(device, mode)
+    if torch.device(device).type != "cpu" or getattr(module, "chosen_for", None) == precision:
+        return module
+    if precision == "bf16":
+        choice = "channels_last"
+    elif probe is None:
+        choice = "default"
+    else:
+        module.to(memory_format=torch.contiguous_format)
+        default = _best_seconds(probe)
         module.to(memory_format=torch.channels_last)
+        fast = _best_seconds(probe)
+        choice = "channels_last" if default >= CHANNELS_LAST_GAIN * fast else "default"
+    module.to(memory_format=torch.channels_last if choice == "channels_last" else torch.contiguous_format)
+    module.chosen_layout, module.chosen_for = choice, precision
     return module
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import torch
 
 from stages.common.curves import Curves
+from stages.common.precision import layout_of
 from stages.rl.demo_bc import DemoBC
 from stages.rl.diagnostics import binned_curve, plot_curves, progress_correlation
 from stages.rl.guard import Guard, fit_done_ensemble
@@ -136,6 +137,10 @@ def train(ctx, cfg, inp) -> dict:
     if isinstance(raw_env, WorldModelVecEnv):
         metrics["ppo/clipped_action_entries"] = int(raw_env.roll.clip_count)
         metrics["ppo/wm_dtype"] = raw_env.dtype  # what "auto" resolved to on this machine
+        if raw_env.reward.needs_frames:  # the layouts conv_layout timed faster here (stages.common.precision)
+            metrics["ppo/decoder_layout"] = layout_of(raw_env.tok.net.decoder)
+            if parts.distance is not None:
+                metrics["ppo/lpips_layout"] = layout_of(parts.distance.net)
     ctx.log.info("rl: %s", {k: v for k, v in metrics.items() if k.startswith("ppo/")})
     return _after_training(ctx, cfg, inp, model, initial, raw_env, metrics, t_stage)
 

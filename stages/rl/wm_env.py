@@ -70,10 +70,12 @@ class WorldModelVecEnv(VecEnv):
         # the proprioception head and the observations stay fp32, the reward module keeps its own
         # (the rl stage gives the LPIPS distance the same wm_dtype)
         self.dtype = resolved(device, dtype)
-        conv_layout(tokenizer.net.decoder, device, self.dtype)  # bf16 on a CPU: the decoder's faster layout
-        self.roll = wm.rollout(num_envs, seed=seed)
         self.rng = np.random.default_rng(seed)
         self.current: list[Start] = [self.starts[0]] * num_envs
+        if reward.needs_frames:  # on a CPU, the decoder in the layout it runs faster in here (timed on a batch of frames)
+            probe = torch.as_tensor(np.stack([s.tokens for s in self.current]).astype(np.int64), device=device)
+            conv_layout(tokenizer.net.decoder, device, self.dtype, probe=lambda: self._decode(probe))
+        self.roll = wm.rollout(num_envs, seed=seed)
         self.t = np.zeros(num_envs, dtype=np.int64)
         self.proprio = torch.zeros(num_envs, PROPRIO_DIM, device=device)  # (B, 10) each env's robot state
         self._actions: np.ndarray | None = None
@@ -88,10 +90,14 @@ class WorldModelVecEnv(VecEnv):
     def _batch(self, tokens: torch.Tensor, done: torch.Tensor, hidden: torch.Tensor) -> StepBatch:
         batch = StepBatch(tokens, done, hidden, np.array([s.env_index for s in self.current]))
         if self.reward.needs_frames:
-            with autocast(self.device, self.dtype):
-                third, wrist = self.tok.decode(tokens)  # each (B, 3, S, S)
-            batch.third, batch.wrist = third.float(), wrist.float()
+            batch.third, batch.wrist = self._decode(tokens)
         return batch
+
+    def _decode(self, tokens: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The frames (third, wrist), each (B, 3, S, S) float32 in [0, 1], of tokens (B, h, w)."""
+        with autocast(self.device, self.dtype):
+            third, wrist = self.tok.decode(tokens)
+        return third.float(), wrist.float()
 
     def _obs(self, tokens: torch.Tensor) -> dict[str, np.ndarray]:
         first = np.stack([s.tokens for s in self.current])  # (B, h, w) each env's real first frame

@@ -85,6 +85,7 @@ def test_all_eight_stages_produce_their_artifacts_and_the_report(store):
     wm = json.loads((artifact(store, "train_wm") / "metrics.json").read_text())
     assert wm["proprio/heldout_ind/h1/tcp_error_cm/head"] is not None
     assert rl["ppo/episodes"] > 0  # episodes ended, by the done head or by truncation
+    assert rl["ppo/decoder_layout"] in ("default", "channels_last")  # what conv_layout timed faster on this CPU
     by_start = json.loads((artifact(store, "rl") / "success_by_start.json").read_text())
     assert by_start["unfinished_from"] > 0 and "ppo/success_first_fifth" in rl  # the unbiased training curve
     for stage in ("tokenize", "train_wm", "sft", "rl"):  # training curves for TensorBoard, and the command that shows them

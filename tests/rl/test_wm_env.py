@@ -159,3 +159,34 @@ def test_observation_from_tokens_takes_numpy_torch_or_lists_alike(kind):
     for k in ref:
         np.testing.assert_array_equal(got[k], ref[k])
     assert got["codes"].dtype == np.float32 and np.isin(got["codes"], [-1.0, 1.0]).all()
+
+
+def test_the_decoders_timed_layout_changes_speed_not_rewards(parts, monkeypatch):
+    """On a CPU the env times the decoder in both layouts (stages.common.precision.conv_layout); forced
+    either way, the same steps give the same rewards and observations."""
+    import copy
+
+    from stages.common import precision
+
+    tok, wm, (g3, gw) = parts
+    envs = {}
+    for layout, (default_s, channels_last_s) in {"default": (1.0, 2.0), "channels_last": (2.0, 1.0)}.items():
+        own = copy.deepcopy(tok)
+        dec = own.net.decoder
+
+        def seconds(call, dec=dec, default_s=default_s, channels_last_s=channels_last_s):
+            call()  # the probe decodes a batch of frames
+            w = next(m.weight for m in dec.modules() if isinstance(m, torch.nn.Conv2d))
+            return channels_last_s if w.is_contiguous(memory_format=torch.channels_last) and not w.is_contiguous() else default_s
+
+        monkeypatch.setattr(precision, "_best_seconds", seconds)
+        reward = WMReward(GoalDistance(g3, gw), alpha=1.0, beta=0.01, theta_sps=0.5, num_envs=3)
+        envs[layout] = WorldModelVecEnv(wm, own, obs_fn(own), reward, starts_for(own), num_envs=3, max_steps=5,
+                                        theta_done=0.999, seed=0)
+        assert precision.layout_of(dec) == layout
+    (a, b) = envs.values()
+    assert np.array_equal(a.reset()["codes"], b.reset()["codes"])
+    act = np.random.default_rng(0).uniform(-1, 1, (3, 7)).astype(np.float32)
+    oa, ra, _, _ = a.step(act)
+    ob, rb, _, _ = b.step(act)
+    assert np.array_equal(oa["codes"], ob["codes"]) and np.allclose(ra, rb, atol=1e-6)
