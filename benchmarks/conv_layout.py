@@ -26,7 +26,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rl_throughput import Setup, timed_learn  # noqa: E402
+from rl_throughput import Setup, pipeline_jobs, timed_learn  # noqa: E402
 
 from stages.common import precision  # noqa: E402
 
@@ -55,9 +55,7 @@ def main() -> None:
     if args.rounds < 1:
         ap.error(f"--rounds must be >= 1, got {args.rounds}")
     if args.threads is None:
-        from pipeline.spec import load_spec
-
-        args.threads = load_spec(Path(__file__).resolve().parents[1] / "pipeline.yaml").jobs
+        args.threads = pipeline_jobs()
     torch.set_num_threads(args.threads)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
 

@@ -104,6 +104,13 @@ def timed_learn(env, steps: int, num_envs: int, device: str) -> float:
     return (model.num_timesteps - 64 * num_envs) / (time.perf_counter() - t)
 
 
+def pipeline_jobs() -> int:
+    """pipeline.yaml's ``jobs``: the torch threads the rl stage of a single run is given on a CPU."""
+    from pipeline.spec import load_spec
+
+    return load_spec(Path(__file__).resolve().parents[1] / "pipeline.yaml").jobs
+
+
 class Setup:
     """What both environments share: the tokenizer, the observation function, a real push scene's
     first frame (rendered once) as every world-model episode's start and goal, the action WM."""
@@ -160,9 +167,7 @@ def main() -> None:
     if args.rounds < 1:
         ap.error(f"--rounds must be >= 1, got {args.rounds}")
     if args.threads is None:
-        from pipeline.spec import load_spec
-
-        args.threads = load_spec(Path(__file__).resolve().parents[1] / "pipeline.yaml").jobs
+        args.threads = pipeline_jobs()
     if args.device == "cpu":
         torch.set_num_threads(args.threads)
     dev = args.device
