@@ -10,7 +10,7 @@ a noisy machine falls on both; each round's ratio and their median are printed.
     .venv/bin/python benchmarks/conv_layout.py [--steps 2048] [--num-envs 16] [--threads N] [--rounds 3] [--wm-dtype auto]
 
 The goal distance is built on ``--goals`` copies of the goal frame (the rl stage builds it on one
-goal per environment of the goals artifact), which is the batch its layout is timed on.
+goal per environment of the goals artifact); its layout is timed on up to ``PROBE_FRAMES`` (32) of them.
 """
 from __future__ import annotations
 

@@ -86,7 +86,7 @@ def conv_layout(module: torch.nn.Module, device: str | torch.device, mode: Preci
     bf16 on a CPU: channels-last, the layout oneDNN's bf16 convolutions are fast in (2-core Xeon with
     AMX, 1 thread: the tokenizer's decoder 33 -> 23 ms, LPIPS features 8.2 -> 4.9 ms for 16 frames).
     fp32 on a CPU: it depends on the CPU (that Xeon: channels-last 1.1 ms slower for the decoder; a
-    2-core Xeon without AMX: the decoder 1.1-1.5x faster channels-last, the world-model env with
+    2-core Xeon without AMX: the decoder 1.1-1.6x faster channels-last, the world-model env with
     LPIPS 1.10x, benchmarks/conv_layout.py), so with ``probe`` (a call that
     runs the module on a representative batch, in the caller's precision) both layouts are timed and
     channels-last is kept if it is at least ``CHANNELS_LAST_GAIN`` times faster; without a probe fp32

@@ -23,6 +23,9 @@ from stages.common.precision import autocast, conv_layout, resolved
 from stages.rl.rewards.base import RewardModule, RewardParts, StepBatch
 
 
+PROBE_FRAMES = 32  # frames per view the LPIPS network's layout is timed on (an env step scores num_envs, 16 at small)
+
+
 class GoalDistance:
     """LPIPS distance of frames to their goal frames, with the goals' features cached.
 
@@ -37,9 +40,10 @@ class GoalDistance:
         self.dtype = resolved(device, dtype)
         self.device = device
         net = get_lpips(device)
-        if torch.device(device).type == "cpu":  # a copy in the layout it runs faster in here (timed on the goals)
+        if torch.device(device).type == "cpu":  # a copy in the layout it runs faster in here (timed on some goals)
             self.net = copy.deepcopy(net)
-            conv_layout(self.net, device, self.dtype, probe=lambda: self.features(goal_third, goal_wrist))
+            probe = goal_third[:PROBE_FRAMES], goal_wrist[:PROBE_FRAMES]  # about an env step's batch, not every goal
+            conv_layout(self.net, device, self.dtype, probe=lambda: self.features(*probe))
         else:
             self.net = net
         self.goal_feats = self.features(goal_third, goal_wrist)  # per view: [(G, C, h, w)] per layer
