@@ -75,7 +75,8 @@ class WorldModelVecEnv(VecEnv):
         if reward.needs_frames:  # on a CPU, the decoder in the layout it runs faster in here (timed on a batch of frames)
             probe = torch.as_tensor(np.stack([s.tokens for s in self.current]).astype(np.int64), device=device)
             conv_layout(tokenizer.net.decoder, device, self.dtype, probe=lambda: self._decode(probe))
-        self.roll = wm.rollout(num_envs, seed=seed)
+        # under bf16 autocast the cached attention reads keys and values in bf16: keep them so (identical results)
+        self.roll = wm.rollout(num_envs, seed=seed, cache_dtype=torch.bfloat16 if self.dtype == "bf16" else torch.float32)
         self.t = np.zeros(num_envs, dtype=np.int64)
         self.proprio = torch.zeros(num_envs, PROPRIO_DIM, device=device)  # (B, 10) each env's robot state
         self._actions: np.ndarray | None = None
@@ -87,8 +88,11 @@ class WorldModelVecEnv(VecEnv):
             self.current[r] = self.starts[int(self.rng.integers(len(self.starts)))]
         self.t[rows] = 0
 
-    def _batch(self, tokens: torch.Tensor, done: torch.Tensor, hidden: torch.Tensor) -> StepBatch:
-        batch = StepBatch(tokens, done, hidden, np.array([s.env_index for s in self.current]))
+    def _batch(self, tokens: torch.Tensor, done: torch.Tensor, hidden: torch.Tensor,
+               rows: np.ndarray | None = None) -> StepBatch:
+        """The step's batch of every env, or of ``rows`` only (tokens, done, hidden then hold just those rows)."""
+        current = self.current if rows is None else [self.current[r] for r in rows]
+        batch = StepBatch(tokens, done, hidden, np.array([s.env_index for s in current]))
         if self.reward.needs_frames:
             batch.third, batch.wrist = self._decode(tokens)
         return batch
@@ -115,8 +119,10 @@ class WorldModelVecEnv(VecEnv):
         new = torch.as_tensor(np.stack([self.current[r].tokens for r in rows]).astype(np.int64), device=self.device)
         self.roll.reset(new, env_ids=torch.as_tensor(rows))
         tokens = tokens.clone()
-        tokens[torch.as_tensor(rows)] = new
-        self.reward.reset(rows, self._batch(tokens, done, hidden))
+        idx = torch.as_tensor(rows)
+        tokens[idx] = new
+        # the reward module reads the restarted envs' first frames only: decode just those
+        self.reward.reset(rows, self._batch(new, done[idx], hidden[idx], rows))
         return tokens
 
     # ---- VecEnv -------------------------------------------------------------------------------------

@@ -100,8 +100,10 @@ class WorldModel:
                 self._text[s] = e.tolist()
         return torch.tensor([self._text[s] for s in instructions], dtype=torch.float32, device=self.device)
 
-    def rollout(self, batch_size: int, seed: int = 0) -> "Rollout":
-        return Rollout(self, batch_size, seed)
+    def rollout(self, batch_size: int, seed: int = 0, cache_dtype: torch.dtype = torch.float32) -> "Rollout":
+        """``batch_size`` envs; ``cache_dtype`` bfloat16 only for callers that step it under bf16 autocast
+        (the attention reads the cache in bf16 there anyway: the same results without a cast per step)."""
+        return Rollout(self, batch_size, seed, cache_dtype)
 
     @torch.no_grad()
     def done_for_sequences(self, tokens: torch.Tensor, control: torch.Tensor) -> torch.Tensor:
@@ -145,12 +147,12 @@ def load_world_model(artifact_dir: str | Path, kind: str = "action", device: str
 class Rollout:
     """``batch_size`` environments stepping one world model with a shared temporal KV cache."""
 
-    def __init__(self, wm: WorldModel, batch_size: int, seed: int = 0):
+    def __init__(self, wm: WorldModel, batch_size: int, seed: int = 0, cache_dtype: torch.dtype = torch.float32):
         spec = wm.spec
         self.wm, self.net, self.spec, self.batch = wm, wm.net, spec, batch_size
         dev = wm.device
         self.cache = TemporalCache(spec.depth, batch_size, spec.tokens, spec.heads, spec.dim // spec.heads,
-                                   spec.window, dev, torch.float32)
+                                   spec.window, dev, cache_dtype)
         self.frame = torch.zeros(batch_size, spec.tokens, dtype=torch.long, device=dev)  # (B, N) latest frame
         self.text_kv: list | None = None
         self.text_mem: torch.Tensor | None = None  # (B, 1, M, D)

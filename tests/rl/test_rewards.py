@@ -68,7 +68,7 @@ def test_progress_reads_each_envs_own_first_frame_across_restarts(scene):
     at_goal = _batch(g3.repeat(2, 1, 1, 1), gw.repeat(2, 1, 1, 1), np.zeros(2), [0, 0])
     before = reward(at_goal)
     # env 1 restarts at the goal itself: it has come nowhere; env 0 keeps its start
-    reward.reset(np.array([1]), _batch(torch.cat([s3, g3]), torch.cat([sw, gw]), np.zeros(2), [0, 0]))
+    reward.reset(np.array([1]), _batch(g3, gw, np.zeros(1), [0]))
     after = reward(at_goal)
     assert after[0] == pytest.approx(before[0]) and before[1] > 0.05
     assert after[1] == pytest.approx(0.0, abs=1e-6)

@@ -190,3 +190,44 @@ def test_the_decoders_timed_layout_changes_speed_not_rewards(parts, monkeypatch)
     oa, ra, _, _ = a.step(act)
     ob, rb, _, _ = b.step(act)
     assert np.array_equal(oa["codes"], ob["codes"]) and np.allclose(ra, rb, atol=1e-6)
+
+
+def test_a_restart_decodes_only_the_restarted_envs_and_reads_their_first_frames(parts, monkeypatch):
+    """One env of three truncates: the step decodes all three frames, the restart only that env's new first
+    frame, and the progress term's start features of that env become its new first frame's."""
+    tok = parts[0]
+    env = _vec(parts, max_steps=4)
+    env.reset()
+    env.step(np.zeros((3, 7), np.float32))
+    env.t[:] = [3, 1, 1]  # env 0 reaches the step cap on the next step, the others do not
+    calls = []
+    real = tok.decode
+    monkeypatch.setattr(tok, "decode", lambda tokens: calls.append(len(tokens)) or real(tokens))
+    _, _, dones, infos = env.step(np.zeros((3, 7), np.float32))
+    assert dones.tolist() == [True, False, False] and infos[0]["TimeLimit.truncated"]
+    assert calls == [3, 1]  # the step's frames, then the restarted env's first frame only
+    first = torch.as_tensor(env.current[0].tokens[None].astype(np.int64))
+    want = env.reward.distance.features(*real(first))
+    for got_view, want_view in zip(env.reward.start_feats, want):
+        for got, w in zip(got_view, want_view):
+            assert torch.allclose(got[0:1], w, atol=1e-6)
+
+
+def test_a_bf16_kv_cache_rolls_out_what_the_fp32_cache_does_under_bf16_autocast(parts):
+    """Under bf16 autocast the cached attention reads keys and values in bf16 either way, so a cache kept
+    in bf16 (what the bf16 world-model env uses) gives the very same frames and done probabilities."""
+    from stages.common.precision import autocast
+
+    tok, wm, _ = parts
+    first = torch.as_tensor(np.stack([s.tokens for s in starts_for(tok)[:2]]).astype(np.int64))
+    rolls = [wm.rollout(2, seed=0, cache_dtype=dt) for dt in (torch.float32, torch.bfloat16)]
+    assert rolls[1].cache.k[0].dtype == torch.bfloat16
+    for roll in rolls:
+        roll.reset(first)
+    acts = torch.as_tensor(np.random.default_rng(1).uniform(-1, 1, (6, 2, 7)), dtype=torch.float32)
+    for a in acts:  # more steps than the window: the ring buffer wraps
+        with autocast("cpu", "bf16"):
+            x, y = (roll.step(a) for roll in rolls)
+        assert torch.equal(x.tokens, y.tokens) and torch.equal(x.done_prob, y.done_prob)
+    assert _vec(parts, dtype="bf16").roll.cache.k[0].dtype == torch.bfloat16
+    assert _vec(parts, dtype="fp32").roll.cache.k[0].dtype == torch.float32

@@ -54,7 +54,8 @@ class RewardModule:
         raise NotImplementedError
 
     def reset(self, rows: np.ndarray, batch: StepBatch) -> None:
-        """Episodes restarted in ``rows``; ``batch`` holds their initial frames (all B rows)."""
+        """Episodes restarted in ``rows``; ``batch`` holds their initial frames, one per row of ``rows`` in
+        that order (the env decodes only the restarted envs' frames)."""
 
     def __call__(self, batch: StepBatch) -> np.ndarray:
         raise NotImplementedError

@@ -85,6 +85,7 @@ class WMReward(RewardModule):
         self.distance, self.alpha, self.beta, self.theta = distance, alpha, beta, theta_sps
         self.dense_kind, self.gamma = dense, gamma
         self.needs_frames = beta > 0  # sparse only (beta 0): the environment decodes no frame for it
+        self.num_envs = num_envs
         self.prev_phi = np.zeros(num_envs)
         self.start_feats: list[list[torch.Tensor]] | None = None  # progress: per view, per layer (num_envs, C, h, w)
         # every dense step is <= 1 (LPIPS distance lies in [0, 1])
@@ -104,15 +105,15 @@ class WMReward(RewardModule):
     def reset(self, rows: np.ndarray, batch: StepBatch) -> None:
         if not len(rows) or not self.needs_frames:
             return
+        if len(batch.goal_index) != len(rows):
+            raise ValueError(f"reset: {len(rows)} restarted rows but a batch of {len(batch.goal_index)} first frames")
         if self.dense_kind == "potential":
-            phi = -self.distance(batch.third, batch.wrist, batch.goal_index)
-            self.prev_phi[rows] = phi[rows]
+            self.prev_phi[rows] = -self.distance(batch.third, batch.wrist, batch.goal_index)
         elif self.dense_kind == "progress":
+            feats = self.distance.features(batch.third, batch.wrist)  # per view, per layer (len(rows), C, h, w)
+            if self.start_feats is None:
+                self.start_feats = [[f.new_zeros((self.num_envs, *f.shape[1:])) for f in view] for view in feats]
             idx = torch.as_tensor(rows, dtype=torch.long)
-            feats = self.distance.features(batch.third[idx], batch.wrist[idx])
-            if self.start_feats is None:  # sized on the first reset, which restarts every env
-                n = len(batch.goal_index)
-                self.start_feats = [[f.new_zeros((n, *f.shape[1:])) for f in view] for view in feats]
             for store, view in zip(self.start_feats, feats):
                 for s, f in zip(store, view):
                     s[idx.to(s.device)] = f
