@@ -51,3 +51,10 @@ def test_conv_layout_prints_both_layouts_and_the_ratio():
               "--threads", "1")
     assert "default: decoder default, LPIPS default" in out and "timed: decoder " in out
     assert "round 1/1:" in out and "timed / default layouts median" in out
+
+
+@pytest.mark.sim
+def test_kv_cache_prints_both_caches_the_ratio_and_that_they_agree():
+    out = run("benchmarks/kv_cache.py", "--num-envs", "2", "--steps", "4", "--rounds", "2", "--threads", "1")
+    assert "round 2/2 (bf16 first)" in out and "identical True" in out and "identical False" not in out
+    assert "bf16 / fp32 KV cache median" in out
