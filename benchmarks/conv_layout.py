@@ -7,7 +7,10 @@ model, policy architecture and PPO settings of ``benchmarks/rl_throughput.py`` (
 speed does not depend on them) and are measured alternately, ``--rounds`` times, so a slow spell of
 a noisy machine falls on both; each round's ratio and their median are printed.
 
-    .venv/bin/python benchmarks/conv_layout.py [--steps 2048] [--num-envs 16] [--threads N] [--rounds 3] [--wm-dtype auto]
+    .venv/bin/python benchmarks/conv_layout.py [--steps 2048] [--num-envs 16] [--threads N] [--rounds 3] [--wm-dtype fp32]
+
+The env runs fp32 by default: bf16 is channels-last whatever the timing says, so under bf16 (or an
+``auto`` that resolves to it) both envs have the same layouts and the benchmark says so before timing.
 
 The goal distance is built on ``--goals`` copies of the goal frame (the rl stage builds it on one
 goal per environment of the goals artifact); its layout is timed on up to ``PROBE_FRAMES`` (32) of them.
@@ -48,7 +51,8 @@ def main() -> None:
     ap.add_argument("--num-envs", type=int, default=16)
     ap.add_argument("--goals", type=int, default=48)
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--wm-dtype", choices=["fp32", "bf16", "auto"], default="auto")
+    ap.add_argument("--wm-dtype", choices=["fp32", "bf16", "auto"], default="fp32",
+                    help="the env's precision (default fp32: the only one whose layout is timed)")
     ap.add_argument("--threads", type=int, default=None,
                     help="torch threads (default: pipeline.yaml's jobs, what the rl stage of a single run is given)")
     args = ap.parse_args()
@@ -62,9 +66,13 @@ def main() -> None:
     setup = Setup("cpu")
     setup.goal = tuple(g.repeat(args.goals, 1, 1, 1) for g in setup.goal)  # (goals, 3, S, S) per view
     envs = {"default": env_with_layouts(setup, args, timed=False), "timed": env_with_layouts(setup, args, timed=True)}
-    for name, env in envs.items():
-        print(f"  {name}: decoder {precision.layout_of(env.tok.net.decoder)}, "
-              f"LPIPS {precision.layout_of(env.reward.distance.net)} ({env.dtype})", flush=True)
+    layouts = {name: (precision.layout_of(env.tok.net.decoder), precision.layout_of(env.reward.distance.net))
+               for name, env in envs.items()}
+    for name, (decoder, lpips) in layouts.items():
+        print(f"  {name}: decoder {decoder}, LPIPS {lpips} ({envs[name].dtype})", flush=True)
+    if layouts["default"] == layouts["timed"]:
+        print(f"  both envs have the same layouts under {envs['timed'].dtype}: the ratio below measures noise only",
+              flush=True)
     rates = []
     for r in range(args.rounds):
         a = timed_learn(envs["default"], args.steps, args.num_envs, "cpu")

@@ -51,6 +51,9 @@ def test_conv_layout_prints_both_layouts_and_the_ratio():
               "--threads", "1")
     assert "default: decoder default, LPIPS default" in out and "timed: decoder " in out
     assert "round 1/1:" in out and "timed / default layouts median" in out
+    bf16 = run("benchmarks/conv_layout.py", "--num-envs", "2", "--steps", "16", "--goals", "2", "--rounds", "1",
+               "--threads", "1", "--wm-dtype", "bf16")
+    assert "default: decoder channels_last, LPIPS channels_last (bf16)" in bf16 and "measures noise only" in bf16
 
 
 @pytest.mark.sim
