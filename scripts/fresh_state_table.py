@@ -9,6 +9,11 @@ the seeds, and gives both intervals: over the pooled episodes (these policies) a
 (Student-t: what another seed would give).
 
     PYTHONPATH=. .venv/bin/python scripts/fresh_state_table.py [--manifest M] [--figure PNG]
+        [--by-task [--group push+pull=push,pull ...]]
+
+``--by-task`` adds a second table with the same two intervals per task (every task the episodes hold,
+in the order they first appear) and per ``--group`` of tasks pooled (``NAME=task,task``; repeatable):
+where in the task suite a method gains or loses.
 
 File names: ``<stem>_s<seed>_<tag>_<date>.jsonl`` in domain, ``<stem>_ood_s<seed>_<tag>_<date>.jsonl``
 out of domain; each (stem, seed, split) must match exactly one file.
@@ -85,38 +90,75 @@ def episodes(path: Path) -> list[dict]:
     return rows
 
 
-def compare(c: Comparison, folder: Path) -> dict[str, dict]:
-    """Per split: the pooled paired difference, the per-seed differences and their across-seed interval."""
+def compare(c: Comparison, folder: Path, tasks: frozenset[str] | None = None) -> dict[str, dict]:
+    """Per split: the pooled paired difference, the per-seed differences and their across-seed interval;
+    over the episodes of ``tasks`` only, when given."""
     out = {}
     for split in c.splits:
         pooled, per_seed = [], []
         for seed in c.seeds:
             method = episodes(episodes_file(folder, c.stem, seed, split, c.tag))
             base = episodes(episodes_file(folder, c.baseline, seed, split, c.tag))
-            pairs = [(r, b) for r, b in pair_up(method, base) if r["split"] == split]
+            pairs = [(r, b) for r, b in pair_up(method, base)
+                     if r["split"] == split and (tasks is None or r["task"] in tasks)]
             if not pairs:
-                raise SystemExit(f"{c.label!r} seed {seed} {split}: no episode shares an initial state with its baseline")
+                which = "" if tasks is None else f" (tasks {sorted(tasks)})"
+                raise SystemExit(f"{c.label!r} seed {seed} {split}{which}: no episode shares an initial state with its baseline")
             pooled += pairs
             per_seed.append(by_split(pairs)[(split,)]["diff"])
         out[split] = {"pooled": by_split(pooled)[(split,)], "per_seed": per_seed, "seeds": across_seeds(per_seed)}
     return out
 
 
+def _cell(r: dict | None) -> str:
+    """'pooled [interval] | across seeds [interval]' of one split's ``compare`` result."""
+    if r is None:
+        return "- | -"
+    p, s = r["pooled"], r["seeds"]
+    seeds = f"{s['diff']:+.2f} [{s['lo']:+.2f}, {s['hi']:+.2f}]" if s["k"] > 1 else "-"
+    return f"{p['diff']:+.2f} [{p['lo']:+.2f}, {p['hi']:+.2f}] | {seeds}"
+
+
 def table(rows: list[tuple[Comparison, dict]]) -> str:
     """A markdown table: pooled [interval] (n) and across seeds [interval] per split."""
-    def cell(r: dict | None) -> str:
-        if r is None:
-            return "- | -"
-        p, s = r["pooled"], r["seeds"]
-        seeds = f"{s['diff']:+.2f} [{s['lo']:+.2f}, {s['hi']:+.2f}]" if s["k"] > 1 else "-"
-        return f"{p['diff']:+.2f} [{p['lo']:+.2f}, {p['hi']:+.2f}] | {seeds}"
-
     lines = ["| method | against | seeds | IND pooled | IND across seeds | OOD pooled | OOD across seeds | n per split |",
              "|---|---|---|---|---|---|---|---|"]
     for c, r in rows:
         seeds = ", ".join(map(str, c.seeds))
         n = r[c.splits[0]]["pooled"]["n"]
-        lines.append(f"| {c.label} | `{c.baseline}` | {seeds} | {cell(r.get('ind'))} | {cell(r.get('ood'))} | {n:,} |")
+        lines.append(f"| {c.label} | `{c.baseline}` | {seeds} | {_cell(r.get('ind'))} | {_cell(r.get('ood'))} | {n:,} |")
+    return "\n".join(lines)
+
+
+def task_groups(comparisons: list[Comparison], folder: Path, groups: list[str]) -> list[tuple[str, frozenset[str]]]:
+    """(name, tasks) per task the compared episodes hold (first-seen order), then per ``NAME=task,task`` group."""
+    seen: dict[str, None] = {}
+    for c in comparisons:
+        for seed in c.seeds:
+            for split in c.splits:
+                for r in episodes(episodes_file(folder, c.stem, seed, split, c.tag)):
+                    seen.setdefault(r["task"], None)
+    out = [(t, frozenset({t})) for t in seen]
+    for g in groups:
+        name, sep, members = g.partition("=")
+        tasks = frozenset(t.strip() for t in members.split(",") if t.strip())
+        if not sep or not name or not tasks:
+            raise SystemExit(f"--group {g!r}: expected NAME=task,task (e.g. push+pull=push,pull)")
+        unknown = sorted(tasks - set(seen))
+        if unknown:
+            raise SystemExit(f"--group {g!r}: tasks {unknown} are in no compared episode (tasks: {list(seen)})")
+        out.append((name, tasks))
+    return out
+
+
+def task_table(rows: list[tuple[Comparison, str, dict]]) -> str:
+    """The same table with a row per (comparison, task or task group)."""
+    lines = ["| method | against | seeds | tasks | IND pooled | IND across seeds | OOD pooled | OOD across seeds | n per split |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for c, name, r in rows:
+        n = r[c.splits[0]]["pooled"]["n"]
+        lines.append(f"| {c.label} | `{c.baseline}` | {', '.join(map(str, c.seeds))} | {name} | "
+                     f"{_cell(r.get('ind'))} | {_cell(r.get('ood'))} | {n:,} |")
     return "\n".join(lines)
 
 
@@ -144,11 +186,11 @@ def figure(rows: list[tuple[Comparison, dict]], path: Path) -> None:
         ax.axvline(0, color="k", lw=0.8)
         ax.set_xlim(-XLIM, XLIM)  # two-seed Student-t intervals run off it rather than squash the rest
         ax.set_title({"ind": "in domain", "ood": "out of domain"}[split])
-        ax.set_xlabel("success minus SFT's (or the named baseline's), paired")
         ax.grid(axis="x", alpha=0.3)
     axes[0].set_yticks(ys, [c.label + ("" if c.baseline == "sft" else f", minus {c.baseline}") for c, _ in rows],
                        fontsize=8)
     fig.suptitle("thick: 95% interval over pooled episodes; thin: over seeds (Student-t, may run off the axis); dots: seeds", fontsize=9)
+    fig.supxlabel("success minus SFT's (or the named baseline's), paired on the same initial states", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -158,10 +200,20 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--manifest", type=Path, default=FRESH / "comparisons.json")
     ap.add_argument("--figure", type=Path, help="write the forest plot here (PNG)")
+    ap.add_argument("--by-task", action="store_true", help="also print every comparison per task")
+    ap.add_argument("--group", action="append", default=[], metavar="NAME=TASK,TASK",
+                    help="with --by-task: also pool these tasks as one row (repeatable)")
     args = ap.parse_args()
+    if args.group and not args.by_task:
+        ap.error("--group needs --by-task")
     folder = args.manifest.parent
-    rows = [(c, compare(c, folder)) for c in load_manifest(args.manifest)]
+    comparisons = load_manifest(args.manifest)
+    rows = [(c, compare(c, folder)) for c in comparisons]
     print(table(rows))
+    if args.by_task:
+        groups = task_groups(comparisons, folder, args.group)
+        print()
+        print(task_table([(c, name, compare(c, folder, tasks)) for c in comparisons for name, tasks in groups]))
     if args.figure:
         figure(rows, args.figure)
         print(f"figure: {args.figure}", file=sys.stderr)

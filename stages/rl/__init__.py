@@ -44,7 +44,8 @@ Outputs:
     rl.json             the facts this stage fixes, read by evaluate and the sweep report through
                         ``read_rl_facts``: the reward module, whether success pays the steps left,
                         what ``rule`` pays (``rule_terms``), the algorithm (``ppo`` or ``filtered_bc``),
-                        what filtered BC imitates (``fbc_select``) and the method label key (``method_of``)
+                        what filtered BC imitates (``fbc_select``), the calibration gate's ratio and the
+                        method label key (``method_of``)
     filtered_bc.json    with ``algorithm: filtered_bc``: per round, episodes played, successes, episodes
                         imitated (and how many of them successes), pairs and the fit's held-out loss (``stages.rl.filtered_bc``)
     acceptance.json     with ``accept_episodes``: the acceptance test's SFT and PPO success per task on the
@@ -267,7 +268,8 @@ def run(ctx) -> None:
     metrics = train(ctx, cfg, inputs)
     facts = {"reward": cfg.reward, "success_payout": cfg.success_payout,
              "rule_terms": cfg.rule_terms if cfg.reward == "rule" else None, "algorithm": cfg.algorithm,
-             "method": method_of(cfg.reward, cfg.rule_terms, cfg.algorithm, cfg.fbc_select), "fbc_select": cfg.fbc_select}
+             "method": method_of(cfg.reward, cfg.rule_terms, cfg.algorithm, cfg.fbc_select, cfg.calibration_ratio),
+             "fbc_select": cfg.fbc_select, "calibration_ratio": cfg.calibration_ratio}
     (ctx.out / RL_JSON).write_text(json.dumps(facts) + "\n")
     ctx.write_metrics(metrics)
 
@@ -288,13 +290,18 @@ def unread_needs(cfg: Config) -> list[str]:
     return unread if reads_world_model(cfg) else [*unread, "train_wm", "goals"]
 
 
-def method_of(reward: str, rule_terms: str, algorithm: str = "ppo", fbc_select: str = "success") -> str:
+def method_of(reward: str, rule_terms: str, algorithm: str = "ppo", fbc_select: str = "success",
+              calibration_ratio: float = 0.0) -> str:
     """The method a run stands for in tables: the reward module, with ``rule`` split by what it pays
     (``rule``: success alone, the default; ``rule_dense``: the task's dense reward); filtered BC
     (``algorithm: filtered_bc``) is ``<reward>_fbc`` (its reward only names the environment and its success),
-    and its control that imitates random episodes (``fbc_select: random``) ``<reward>_fbc_random``."""
+    and its control that imitates random episodes (``fbc_select: random``) ``<reward>_fbc_random``; PPO
+    behind the calibration gate (``calibration_ratio`` > 0, world-model rewards only) is ``<reward>_gated``,
+    so a sweep over the gate keeps its two arms apart."""
     if algorithm == "filtered_bc":
         return f"{reward}_fbc" + ("_random" if fbc_select == "random" else "")
+    if calibration_ratio > 0:
+        return f"{reward}_gated"
     return "rule_dense" if reward == "rule" and rule_terms == "dense" else reward
 
 

@@ -100,6 +100,35 @@ def _paired_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
     return _section("PPO minus SFT, paired on the same initial states", note, header, body)
 
 
+def _paired_by_task_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
+    """Each method minus its SFT policy per task, seeds pooled: where in the task suite it gains or loses."""
+    paired: dict[str, list] = {}
+    per_seed: dict[tuple[str, str], list] = {}
+    for run in runs:
+        pairs = pair_up([r for r in run.results if r["policy"] == "ppo"], [r for r in run.results if r["policy"] == "sft"])
+        paired.setdefault(run.method, []).extend(pairs)
+        per_seed.setdefault((run.method, str(run.seed)), []).extend(pairs)
+    if not any(paired.values()):
+        return None
+    keys = ("task", "split")
+    splits = [s for s in ("ind", "ood", "extra") if any(r["split"] == s for v in paired.values() for r, _ in v)]
+    header = ["method", "task"] + [s.upper() for s in splits] + [f"{s.upper()} across seeds" for s in splits]
+    body = []
+    for method in [m for m in ORDER if paired.get(m)]:
+        pooled = by_split(paired[method], keys)
+        seeds = [by_split(per_seed[k], keys) for k in sorted(k for k in per_seed if k[0] == method)]
+        for task in dict.fromkeys(r["task"] for r, _ in paired[method]):
+            cells = [fmt_difference(pooled[(task, s)]) if (task, s) in pooled else "-" for s in splits]
+            spread = [fmt_across_seeds(across_seeds([r[(task, s)]["diff"] for r in seeds if (task, s) in r]))
+                      for s in splits]
+            body.append([LABELS[method], task] + cells + spread)
+    note = ("The paired differences above, per task: PPO minus its own seed's SFT policy on the same initial states, "
+            "seeds pooled [95% interval], and the mean of the per-seed differences with its Student-t interval over "
+            "seeds. A world model's reward can be informative on some tasks and misleading on others (docs/rl.md, "
+            "\"The calibration gate\"); a pooled difference near 0 may hide both.")
+    return _section("PPO minus SFT per task, paired", note, header, body)
+
+
 def _per_run_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
     rows = []
     for m in ORDER:
@@ -285,7 +314,7 @@ def report(points: list[dict], out: Path) -> Path:
     sections = []
     if runs:
         sections += _success_sections(runs)
-        sections += [s for s in (_paired_section(runs),) if s]
+        sections += [s for s in (_paired_section(runs), _paired_by_task_section(runs)) if s]
         sections += [s for s in (_per_run_section(runs), _cost_section(runs), _diagnostics_section(runs)) if s]
         sections += _figure_sections(runs, out)
     write_report(out, "RoboScape-R sweep report",

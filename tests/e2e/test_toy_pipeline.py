@@ -382,6 +382,8 @@ def test_the_calibration_gate_trains_ppo_on_the_tasks_it_keeps(store):
     table = json.loads((rl / "calibration.json").read_text())
     rows = {r["task"]: r for r in table["tasks"]}
     assert table["ratio"] == 0.5 and set(rows) == {"pick_place", "push", "pull", "move_to_aim"}
+    facts = json.loads((rl / "rl.json").read_text())
+    assert facts["method"] == "wm_gated" and facts["calibration_ratio"] == 0.5  # its own rows in evaluate and sweep reports
     assert all(r["played"] == 1 and r["starts"] >= 1 for r in rows.values())
     m = json.loads((rl / "metrics.json").read_text())
     assert m["calibration/kept_tasks"] == sum(r["kept"] for r in rows.values())

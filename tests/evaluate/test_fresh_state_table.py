@@ -1,5 +1,6 @@
-"""scripts/fresh_state_table.py: hand-made episode files give known paired differences; the committed
-manifest resolves to committed files that pair; a malformed manifest names what is wrong."""
+"""scripts/fresh_state_table.py: hand-made episode files give known paired differences, overall and
+per task (``--by-task``, ``--group``); the committed manifest resolves to committed files that pair;
+a malformed manifest or group names what is wrong."""
 from __future__ import annotations
 
 import json
@@ -13,9 +14,10 @@ REPO = Path(__file__).resolve().parents[2]
 SCRIPT = REPO / "scripts" / "fresh_state_table.py"
 
 
-def _write(folder: Path, name: str, policy: str, split: str, wins: set[int]) -> None:
-    rows = [{"policy": policy, "task": "push", "split": split, "scene_id": "a", "seed": i, "success": i in wins}
-            for i in range(4)]
+def _write(folder: Path, name: str, policy: str, split: str, wins: set[int], tasks=("push",)) -> None:
+    """Four initial states per task; state i of task k is episode 4k + i of ``wins``."""
+    rows = [{"policy": policy, "task": t, "split": split, "scene_id": "a", "seed": i, "success": 4 * k + i in wins}
+            for k, t in enumerate(tasks) for i in range(4)]
     (folder / name).write_text("".join(json.dumps(r) + "\n" for r in rows))
 
 
@@ -64,4 +66,42 @@ def test_bad_manifest_names_what_is_wrong(tmp_path, manifest, message):
     _write(tmp_path, "sft_s0_m_2026-01-01.jsonl", "sft", "ind", set())
     (tmp_path / "comparisons.json").write_text(json.dumps(manifest))
     out = _run("--manifest", str(tmp_path / "comparisons.json"))
+    assert out.returncode != 0 and message in out.stderr, out.stderr
+
+
+def test_by_task_rows_and_groups(tmp_path):
+    tasks = ("push", "pull", "pick_place")
+    for seed in (0, 1):
+        for split in ("ind", "ood"):
+            infix = "" if split == "ind" else "_ood"
+            _write(tmp_path, f"sft{infix}_s{seed}_m_2026-01-01.jsonl", "sft", split, {0, 4, 8}, tasks)
+            # push: +2 of 4 states; pull: unchanged; pick_place: -1 of 4
+            _write(tmp_path, f"meth{infix}_s{seed}_m_2026-01-02.jsonl", "ppo", split, {0, 1, 2, 4}, tasks)
+    (tmp_path / "comparisons.json").write_text(json.dumps({"comparisons": [
+        {"label": "meth", "stem": "meth", "baseline": "sft", "seeds": [0, 1], "tag": "m"}]}))
+    out = _run("--manifest", str(tmp_path / "comparisons.json"), "--by-task", "--group", "push+pull=push,pull")
+    assert out.returncode == 0, out.stderr
+    overall, per_task = out.stdout.strip().split("\n\n")  # the usual table, then the per-task one
+    assert "| +0.08 [" in overall  # all tasks: (+2 + 0 - 1) / 12 per seed
+    rows = {line.split(" | ")[3]: line for line in per_task.splitlines() if line.startswith("| meth | `sft` | 0, 1 | ")}
+    assert list(rows) == ["push", "pull", "pick_place", "push+pull"]
+    # every seed and split the same: across seeds sd 0, interval of zero width; pooled over 8 pairs per task
+    assert "| +0.50 [+0.13, +0.87] | +0.50 [+0.50, +0.50] | +0.50 [+0.13, +0.87] | +0.50 [+0.50, +0.50] | 8 |" in rows["push"]
+    assert "| +0.00 [+0.00, +0.00] | +0.00 [+0.00, +0.00] |" in rows["pull"]
+    assert "| -0.25 [-0.57, +0.07] | -0.25 [-0.25, -0.25] |" in rows["pick_place"]
+    # push and pull pooled: 16 pairs, mean +0.25
+    assert rows["push+pull"].endswith("| 16 |") and "| +0.25 [" in rows["push+pull"]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--by-task", "--group", "push,pull"], "expected NAME=task,task"),
+    (["--by-task", "--group", "both=push,lift"], "tasks ['lift'] are in no compared episode"),
+    (["--group", "both=push"], "--group needs --by-task"),
+])
+def test_bad_group_names_what_is_wrong(tmp_path, args, message):
+    _write(tmp_path, "sft_s0_m_2026-01-01.jsonl", "sft", "ind", set())
+    _write(tmp_path, "meth_s0_m_2026-01-02.jsonl", "ppo", "ind", {0})
+    (tmp_path / "comparisons.json").write_text(json.dumps({"comparisons": [
+        {"label": "meth", "stem": "meth", "baseline": "sft", "seeds": [0], "tag": "m", "splits": ["ind"]}]}))
+    out = _run("--manifest", str(tmp_path / "comparisons.json"), *args)
     assert out.returncode != 0 and message in out.stderr, out.stderr

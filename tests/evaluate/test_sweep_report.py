@@ -155,6 +155,24 @@ def test_the_paired_section_reports_ppo_minus_its_own_sft(tmp_path):
     assert "across seeds" in rows[3] and "+0.50 [-1.00, +1.00] (2 seeds, sd 0.71)" in rows[3]
 
 
+def test_the_per_task_section_splits_the_paired_differences_and_keeps_the_gated_arm_apart(tmp_path):
+    points = [_point(tmp_path, "rule", 0, ppo_wins=4, sft_wins=0, snap_wins=0),
+              _point(tmp_path, "rule", 1, ppo_wins=1, sft_wins=1, snap_wins=0),
+              _point(tmp_path, "wm", 0, ppo_wins=0, sft_wins=0, snap_wins=0,
+                     rl_json={"reward": "wm", "success_payout": True, "rule_terms": None, "method": "wm_gated"})]
+    out = tmp_path / "out"
+    out.mkdir()
+    md = report(points, out).read_text()
+    section = md.split("## PPO minus SFT per task, paired")[1].split("## ")[0]
+    rule = {line.split(" | ")[1]: line for line in section.splitlines() if line.startswith("| PPO in ManiSkill")}
+    assert list(rule) == ["push", "pull"]  # tasks alternate over the states: 0, 2 push; 1, 3 pull
+    for row in rule.values():
+        # seed 0: both of the task's states +1; seed 1: 0 -> pooled +0.50 over 4, across seeds +0.50 [-1, +1]
+        assert "+0.50" in row and "n=4, 2 better / 0 worse" in row and "+0.50 [-1.00, +1.00] (2 seeds, sd 0.71)" in row
+    gated = [line for line in section.splitlines() if line.startswith("| PPO in world model (WM reward, ours), calibration-gated")]
+    assert len(gated) == 2 and all("+0.00 [+0.00, +0.00] (n=2, 0 better / 0 worse)" in line for line in gated)
+
+
 def test_across_seeds_is_a_student_t_interval_over_the_seeds():
     from stages.sweep_report.paired import across_seeds, fmt_across_seeds
 

@@ -62,3 +62,25 @@ def test_calibrate_rates_each_task_on_its_own_starts(parts):
     assert [(c.task, c.imagined, c.starts, c.real, c.played) for c in table] == [("push", 2, 2, 1, 1),
                                                                                   ("pull", 1, 1, 0, 2)]
     assert [c.kept(0.5) for c in table] == [True, False]  # theta ~0: every imagined episode "succeeds"
+
+
+def test_gated_ppo_is_its_own_method_and_every_valid_config_has_a_table_label():
+    import itertools
+
+    from pydantic import ValidationError
+
+    from stages.evaluate.writeup import METHODS
+    from stages.rl import REWARDS, Config, method_of
+
+    assert method_of("wm", "success", calibration_ratio=0.5) == "wm_gated"
+    assert method_of("wm", "success", calibration_ratio=0.0) == "wm"  # the default: the same label as before
+    methods = set()
+    for reward, terms, algorithm, select, ratio in itertools.product(
+            REWARDS, ("success", "dense"), ("ppo", "filtered_bc"), ("success", "random"), (0.0, 0.5)):
+        try:
+            cfg = Config(reward=reward, rule_terms=terms, algorithm=algorithm, fbc_select=select, calibration_ratio=ratio)
+        except ValidationError:
+            continue
+        methods.add(method_of(cfg.reward, cfg.rule_terms, cfg.algorithm, cfg.fbc_select, cfg.calibration_ratio))
+    assert {"wm", "wm_gated", "embedding_gated", "proxy_gated", "rule", "rule_dense", "wm_fbc"} <= methods
+    assert methods <= set(METHODS), sorted(methods - set(METHODS))  # evaluate and the sweep report label each one
