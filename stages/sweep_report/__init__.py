@@ -68,16 +68,20 @@ def _success_sections(runs: list[PointRun]) -> list[tuple[str, str, str]]:
     return sections
 
 
-def _paired_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
-    """Each method minus the SFT policy it started from, on the same initial states, per seed and pooled."""
+def _pairs_by_method(runs: list[PointRun]) -> tuple[dict[str, list], dict[tuple[str, str], list]]:
+    """(PPO episode, SFT success) pairs on shared initial states: per method, and per (method, seed)."""
     paired: dict[str, list] = {}
     per_seed: dict[tuple[str, str], list] = {}
     for run in runs:
-        ppo = [r for r in run.results if r["policy"] == "ppo"]
-        sft = [r for r in run.results if r["policy"] == "sft"]
-        pairs = pair_up(ppo, sft)
+        pairs = pair_up([r for r in run.results if r["policy"] == "ppo"], [r for r in run.results if r["policy"] == "sft"])
         paired.setdefault(run.method, []).extend(pairs)
         per_seed.setdefault((run.method, str(run.seed)), []).extend(pairs)
+    return paired, per_seed
+
+
+def _paired_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
+    """Each method minus the SFT policy it started from, on the same initial states, per seed and pooled."""
+    paired, per_seed = _pairs_by_method(runs)
     if not any(paired.values()):
         return None
     splits = [s for s in ("ind", "ood", "extra") if any(r["split"] == s for v in paired.values() for r, _ in v)]
@@ -102,12 +106,7 @@ def _paired_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
 
 def _paired_by_task_section(runs: list[PointRun]) -> tuple[str, str, str] | None:
     """Each method minus its SFT policy per task, seeds pooled: where in the task suite it gains or loses."""
-    paired: dict[str, list] = {}
-    per_seed: dict[tuple[str, str], list] = {}
-    for run in runs:
-        pairs = pair_up([r for r in run.results if r["policy"] == "ppo"], [r for r in run.results if r["policy"] == "sft"])
-        paired.setdefault(run.method, []).extend(pairs)
-        per_seed.setdefault((run.method, str(run.seed)), []).extend(pairs)
+    paired, per_seed = _pairs_by_method(runs)
     if not any(paired.values()):
         return None
     keys = ("task", "split")
