@@ -46,11 +46,15 @@ def test_pooled_and_across_seed_differences_per_split(tmp_path):
 
 
 def test_committed_manifest_pairs_every_listed_file():
-    out = _run()
+    out = _run("--by-task", "--group", "push+pull=push,pull")
     assert out.returncode == 0, out.stderr
     manifest = json.loads((REPO / "docs" / "results" / "fresh_states" / "comparisons.json").read_text())
-    rows = [line for line in out.stdout.splitlines() if line.startswith("| ") and not line.startswith("| method")]
+    overall, per_task = out.stdout.strip().split("\n\n")
+    rows = [line for line in overall.splitlines() if line.startswith("| ") and not line.startswith("| method")]
     assert len(rows) == len(manifest["comparisons"])
+    # every comparison: a row for each of the four tasks and one for the group (RESULTS, "Where PPO ... gains")
+    task_rows = [line for line in per_task.splitlines() if line.startswith("| ") and not line.startswith("| method")]
+    assert len(task_rows) == 5 * len(manifest["comparisons"])
 
 
 @pytest.mark.parametrize("manifest, message", [
