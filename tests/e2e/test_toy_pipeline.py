@@ -202,6 +202,28 @@ def test_reward_sweep_reuses_the_shared_stages(store):
     assert (out / "training_curves.png").is_file() and (out / "reward_diagnostics.png").is_file()
 
 
+def test_a_sweeps_policies_are_evaluated_on_fresh_states_into_files_the_table_pairs(store, tmp_path):
+    # one point of the rewards sweep (cached when the test above ran first)
+    point = ["rewards", "--profile", "toy", "--set", "rl.precision_envs=0", "--axis", "sft.seed+wm_play.seed+rl.seed=[0]",
+             "--axis", "rl.reward=[wm]"]
+    cli(store, "sweep", *point, "--until", "rl")
+    driver = [sys.executable, str(REPO / "scripts" / "fresh_state_sweep.py"), *point, "--store", str(store),
+              "--folder", str(tmp_path), "--tag", "toy", "--splits", "ood", "--episodes", "1", "--max-steps", "5", "--jobs", "1"]
+    first = subprocess.run(driver, cwd=REPO, capture_output=True, text=True, timeout=900)
+    assert first.returncode == 0, first.stdout + first.stderr[-4000:]
+    assert "[2/2]" in first.stdout and '"stem": "rewards-wm"' in first.stdout
+    sys.path.insert(0, str(REPO / "scripts"))
+    from fresh_state_table import episodes, episodes_file
+
+    sft_rows = episodes(episodes_file(tmp_path, "sft", 0, "ood", "toy"))
+    ppo_rows = episodes(episodes_file(tmp_path, "rewards-wm", 0, "ood", "toy"))
+    assert {r["policy"] for r in sft_rows} == {"sft"} and {r["policy"] for r in ppo_rows} == {"ppo"}
+    # the same fresh states for both policies: the pairing's premise
+    assert sorted((r["task"], r["scene_id"], r["seed"]) for r in sft_rows) == sorted((r["task"], r["scene_id"], r["seed"]) for r in ppo_rows)
+    again = subprocess.run(driver, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0 and "[1/" not in again.stdout and again.stdout.count("done ") == 2, again.stdout
+
+
 def test_changing_an_rl_setting_does_not_rerun_sft(store):
     acts = actions(cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.gamma=0.98",
                        "--set", "rl.precision_envs=0"))  # the imagined-success check is not this test's subject

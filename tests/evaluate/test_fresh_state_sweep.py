@@ -1,0 +1,84 @@
+"""scripts/fresh_state_sweep.py: which policies of a sweep it evaluates, where their files go, how it resumes."""
+import json
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
+
+from fresh_state_sweep import Policy, file_prefix, manifest_entries, policies, target  # noqa: E402
+from fresh_state_table import episodes_file  # noqa: E402
+
+
+def test_the_files_it_writes_are_the_ones_the_table_reads(tmp_path):
+    for split in ("ind", "ood"):
+        out, done = target(tmp_path, file_prefix("calibration_gate-wm_gated", 3, split, "c6f250d4"), "2026-12-03")
+        assert not done
+        out.write_text("")
+        assert episodes_file(tmp_path, "calibration_gate-wm_gated", 3, split, "c6f250d4") == out
+        # a method whose stem extends another's is not mistaken for it
+        assert target(tmp_path, file_prefix("calibration_gate-wm", 3, split, "c6f250d4"), "2026-12-03")[1] is False
+
+
+def test_a_finished_file_is_skipped_and_an_interrupted_one_resumes_under_its_own_date(tmp_path):
+    prefix = file_prefix("sft", 0, "ood", "tag")
+    (tmp_path / f"{prefix}2026-12-03.jsonl.partial").write_text("")
+    out, done = target(tmp_path, prefix, "2026-12-04")  # a later session resumes the earlier partial
+    assert (out.name, done) == (f"{prefix}2026-12-03.jsonl", False)
+    out.write_text("")
+    assert target(tmp_path, prefix, "2026-12-04") == (out, True)
+    (tmp_path / f"{prefix}2026-12-05.jsonl").write_text("")
+    with pytest.raises(SystemExit, match="expected at most one"):
+        target(tmp_path, prefix, "2026-12-05")
+
+
+def test_the_manifest_names_only_seeds_whose_method_and_sft_files_are_all_finished(tmp_path):
+    pols = [Policy("sft", s, (), None) for s in (0, 1)] + [Policy("g-wm", s, (), Path("rl")) for s in (0, 1)]
+    for name in ("sft_s0", "sft_ood_s0", "g-wm_s0", "g-wm_ood_s0", "sft_ood_s1", "g-wm_ood_s1"):
+        (tmp_path / f"{name}_t_2026-12-03.jsonl").write_text("")
+    (tmp_path / "g-wm_s1_t_2026-12-03.jsonl.partial").write_text("")  # seed 1's IND episodes are unfinished
+    assert manifest_entries(tmp_path, pols, ["ood", "ind"], "t") == [
+        {"label": "g-wm", "stem": "g-wm", "baseline": "sft", "seeds": [0], "tag": "t"}]
+    assert manifest_entries(tmp_path, pols, ["ood"], "t") == [
+        {"label": "g-wm", "stem": "g-wm", "baseline": "sft", "seeds": [0, 1], "tag": "t", "splits": ["ood"]}]
+
+
+class FakeStore:
+    """A store holding the (stage, key)s it is given; an rl artifact holds its rl.json."""
+
+    def __init__(self, root: Path, held: dict[tuple[str, str], str | None]):
+        self.root, self.held = root, held
+        for (stage, key), method in held.items():
+            self.path(stage, key).mkdir(parents=True)
+            if stage == "rl":
+                (self.path(stage, key) / "rl.json").write_text(json.dumps({"reward": "wm", "method": method}))
+
+    def path(self, stage, key):
+        return self.root / stage / key
+
+    def lookup(self, stage, key):
+        return SimpleNamespace(state="ok" if (stage, key) in self.held else "missing", path=self.path(stage, key))
+
+
+def point(label, sft_key, sft_seed, rl_key):
+    nodes = [SimpleNamespace(stage="collect", key="c0ffee", config={}), SimpleNamespace(stage="tokenize", key="t1", config={}),
+             SimpleNamespace(stage="sft", key=sft_key, config={"seed": sft_seed}), SimpleNamespace(stage="rl", key=rl_key, config={})]
+    return SimpleNamespace(label=label, nodes=nodes)
+
+
+def test_sft_is_offered_as_soon_as_it_exists_and_ppo_once_its_rl_artifact_does(tmp_path):
+    held = {("collect", "c0ffee"): None, ("tokenize", "t1"): None, ("sft", "s0"): None, ("sft", "s1"): None,
+            ("rl", "r0"): "wm", ("rl", "r0g"): "wm_gated"}
+    project = SimpleNamespace(store=FakeStore(tmp_path, held))
+    points = [point("p0", "s0", 0, "r0"), point("p0g", "s0", 0, "r0g"), point("p1", "s1", 1, "r1"), point("p2", "s2", 2, "r2")]
+    pols, waiting, collect_key = policies(project, "g", points)
+    assert [(p.stem, p.seed) for p in pols] == [("sft", 0), ("g-wm", 0), ("g-wm_gated", 0), ("sft", 1)]
+    assert waiting == ["p1", "p2"] and collect_key == "c0ffee"
+    assert pols[1].rl == tmp_path / "rl" / "r0" and pols[1].dirs == pols[0].dirs
+    # two SFT policies under one seed would write the same files
+    held[("sft", "s0b")] = None
+    project = SimpleNamespace(store=FakeStore(tmp_path / "b", held))
+    with pytest.raises(SystemExit, match="share sft.seed 0"):
+        policies(project, "g", [point("p0", "s0", 0, "r0"), point("q0", "s0b", 0, "r0g")])
