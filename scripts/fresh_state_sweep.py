@@ -34,7 +34,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-FRESH = ROOT / "docs" / "results" / "fresh_states"
+sys.path.insert(0, str(ROOT / "scripts"))
+
+from fresh_state_table import FRESH, dated, file_prefix  # noqa: E402  (one naming scheme for writer and reader)
 
 
 @dataclass(frozen=True)
@@ -45,14 +47,9 @@ class Policy:
     rl: Path | None      # the rl artifact (None: the SFT policy itself)
 
 
-def file_prefix(stem: str, seed: int, split: str, tag: str) -> str:
-    """``<stem>_s<seed>_<tag>_`` in domain, ``<stem>_ood_s<seed>_<tag>_`` out of domain (fresh_state_table's names)."""
-    return f"{stem}_s{seed}_{tag}_" if split == "ind" else f"{stem}_ood_s{seed}_{tag}_"
-
-
 def finished(folder: Path, prefix: str) -> Path | None:
     """The finished episodes file ``<prefix><date>.jsonl``, if there is one."""
-    done = sorted(p for p in folder.glob(f"{prefix}*.jsonl") if "_" not in p.name[len(prefix):-len(".jsonl")])
+    done = dated(folder, prefix)
     if len(done) > 1:
         raise SystemExit(f"{folder}: {len(done)} files match {prefix}<date>.jsonl (expected at most one): "
                          f"{[p.name for p in done]}")
@@ -65,8 +62,7 @@ def target(folder: Path, prefix: str, today: str) -> tuple[Path, bool]:
     done = finished(folder, prefix)
     if done is not None:
         return done, True
-    partial = sorted(p for p in folder.glob(f"{prefix}*.jsonl.partial")
-                     if "_" not in p.name[len(prefix):-len(".jsonl.partial")])
+    partial = dated(folder, prefix, ".jsonl.partial")
     date = partial[-1].name[len(prefix):-len(".jsonl.partial")] if partial else today
     return folder / f"{prefix}{date}.jsonl", False
 
@@ -110,7 +106,8 @@ def policies(project, sweep: str, points) -> tuple[list[Policy], list[str], str]
             raise SystemExit(f"sweep {sweep!r}: two points map to {stem} seed {seed}; give them apart by method")
         out[(stem, seed)] = Policy(stem, seed, dirs, rl_dir)
     if len(collect_keys) > 1:
-        raise SystemExit(f"sweep {sweep!r}: its points read {len(collect_keys)} collect artifacts; pass --tag per store")
+        raise SystemExit(f"sweep {sweep!r}: its points read {len(collect_keys)} collect artifacts; "
+                         "run this once per collect artifact (narrow the sweep with --axis)")
     ordered = sorted(out.values(), key=lambda p: (p.seed, p.stem != "sft", p.stem))
     return ordered, waiting, next(iter(collect_keys), "")
 
@@ -177,9 +174,9 @@ def main() -> None:
     todo = []
     for split in splits:
         for pol in pols:
-            out, finished = target(args.folder, file_prefix(pol.stem, pol.seed, split, tag), today)
-            print(f"{'done   ' if finished else 'to run '} {out.name}")
-            if not finished:
+            out, done = target(args.folder, file_prefix(pol.stem, pol.seed, split, tag), today)
+            print(f"{'done   ' if done else 'to run '} {out.name}")
+            if not done:
                 todo.append((pol, split, out))
     for label in waiting:
         print(f"waiting {label}: its rl artifact is not in the store yet")

@@ -72,10 +72,20 @@ def load_manifest(path: Path) -> list[Comparison]:
     return out
 
 
+def file_prefix(stem: str, seed: int, split: str, tag: str) -> str:
+    """``<stem>_s<seed>_<tag>_`` in domain, ``<stem>_ood_s<seed>_<tag>_`` out of domain: a file's name before its date."""
+    return f"{stem}_s{seed}_{tag}_" if split == "ind" else f"{stem}_ood_s{seed}_{tag}_"
+
+
+def dated(folder: Path, prefix: str, suffix: str = ".jsonl") -> list[Path]:
+    """The files ``<prefix><date><suffix>`` in ``folder`` (a date holds no '_', so a longer stem never matches)."""
+    return sorted(p for p in folder.glob(f"{prefix}*{suffix}") if "_" not in p.name[len(prefix):-len(suffix)])
+
+
 def episodes_file(folder: Path, stem: str, seed: int, split: str, tag: str) -> Path:
     """The one file holding ``stem``'s episodes of ``seed`` in ``split``."""
-    name = f"{stem}_s{seed}_{tag}_" if split == "ind" else f"{stem}_ood_s{seed}_{tag}_"
-    hits = sorted(p for p in folder.glob(f"{name}*.jsonl") if p.name[len(name):-len(".jsonl")].count("_") == 0)
+    name = file_prefix(stem, seed, split, tag)
+    hits = dated(folder, name)
     if len(hits) != 1:
         raise SystemExit(f"{folder}: {len(hits)} files match {name}<date>.jsonl (expected one): {[p.name for p in hits]}")
     return hits[0]

@@ -8,8 +8,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 
-from fresh_state_sweep import Policy, file_prefix, manifest_entries, policies, target  # noqa: E402
-from fresh_state_table import episodes_file  # noqa: E402
+from fresh_state_sweep import Policy, manifest_entries, policies, target  # noqa: E402
+from fresh_state_table import episodes_file, file_prefix  # noqa: E402
 
 
 def test_the_files_it_writes_are_the_ones_the_table_reads(tmp_path):
