@@ -2,7 +2,7 @@
 
     PYTHONPATH=. .venv/bin/python scripts/fresh_state_sweep.py calibration_gate [--axis PATH=[...]]
         [--profile P] [--set STAGE.KEY=VALUE] [--store DIR] [--tag TAG] [--episodes 100] [--seed 1]
-        [--max-steps 75] [--splits ood,ind] [--jobs 2] [--dry-run]
+        [--max-steps 75] [--splits ood,ind] [--jobs 2] [--follow SECONDS] [--dry-run]
 
 ``--axis``, ``--profile``, ``--set`` and ``--store`` mean what they mean to ``python -m pipeline sweep``:
 pass the ones the sweep ran with, so the same points (keys) are found.
@@ -18,7 +18,8 @@ The stems are ``sft`` and ``<sweep>-<method>`` (the method from the rl artifact'
 Resumable at two levels: a file that exists is skipped, and a killed evaluation resumes from its
 ``.partial`` file (``evaluate_sft.py``'s own resume; its date is kept). Points whose rl artifact is
 not in the store yet are listed as waiting, so the same command can run after every session's share
-of the sweep. At the end it prints the ``comparisons.json`` entries the finished files support, for
+of the sweep; ``--follow SECONDS`` instead keeps looking until every point's policy is evaluated, so it can
+run beside the sweep itself. At the end it prints the ``comparisons.json`` entries the finished files support, for
 ``scripts/fresh_state_table.py``.
 """
 from __future__ import annotations
@@ -28,6 +29,7 @@ import datetime as dt
 import json
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -119,6 +121,28 @@ def command(pol: Policy, split: str, out: Path, args) -> list[str]:
     return cmd + (["--rl", str(pol.rl)] if pol.rl is not None else [])
 
 
+def drain(plan, run, follow: float, sleep=time.sleep) -> tuple[list[Policy], str]:
+    """Evaluate what ``plan`` offers, one (policy, split) at a time, planning again after each so a policy
+    that landed meanwhile goes in split order (its out-of-domain file before earlier policies' second
+    split). With ``follow`` > 0 it waits that many seconds whenever nothing is left but points still wait
+    for their rl artifact; it returns (the last plan's policies, tag) once nothing is left to run or wait for."""
+    todo, waiting, pols, tag = plan(True)
+    done = 0
+    while True:
+        if todo:
+            pol, split, out = todo[0]
+            done += 1
+            print(f"[{done}/{done + len(todo) - 1}] {pol.stem} seed {pol.seed} {split} -> {out.name}", flush=True)
+            run(pol, split, out)
+        elif waiting and follow > 0:
+            print(f"{len(waiting)} point(s) wait for their rl artifact; looking again in {follow:g} s "
+                  f"({dt.datetime.now():%H:%M:%S})", flush=True)
+            sleep(follow)
+        else:
+            return pols, tag
+        todo, waiting, pols, tag = plan(False)
+
+
 def manifest_entries(folder: Path, pols: list[Policy], splits: list[str], tag: str) -> list[dict]:
     """One comparisons.json entry per method stem: the seeds whose method and SFT files are both finished."""
     entries = []
@@ -149,12 +173,17 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--folder", type=Path, default=FRESH)
     ap.add_argument("--dry-run", action="store_true", help="list what would run")
+    ap.add_argument("--follow", type=float, default=0, metavar="SECONDS",
+                    help="while points wait for their rl artifact (a sweep running beside it), look again every "
+                         "SECONDS and evaluate each policy as it lands; 0 (default): evaluate what is there and stop")
     args = ap.parse_args()
     splits = [s.strip() for s in args.splits.split(",") if s.strip()]
     if not splits or not set(splits) <= {"ind", "ood"} or len(set(splits)) != len(splits):
         raise SystemExit(f"--splits {args.splits!r}: expected ind and/or ood, each once")
     if args.tag is not None and (not args.tag or "_" in args.tag):
         raise SystemExit(f"--tag {args.tag!r}: must be non-empty and hold no '_' (the file names split on it)")
+    if not args.follow >= 0:
+        raise SystemExit(f"--follow {args.follow}: expected seconds >= 0")
 
     from pipeline.errors import PipelineError
     from pipeline.plan import Project, parse_set
@@ -167,30 +196,41 @@ def main() -> None:
         points, _ = expand(project, args.sweep, project.profile_name(args.profile), sets, None, parse_axes(args.axes))
     except PipelineError as e:
         raise SystemExit(f"error: {e}") from None
-    pols, waiting, collect_key = policies(project, args.sweep, points)
-    tag = args.tag or f"c{collect_key[:8]}"
-    today = dt.date.today().isoformat()
     args.folder.mkdir(parents=True, exist_ok=True)
-    todo = []
-    for split in splits:
-        for pol in pols:
-            out, done = target(args.folder, file_prefix(pol.stem, pol.seed, split, tag), today)
-            print(f"{'done   ' if done else 'to run '} {out.name}")
-            if not done:
-                todo.append((pol, split, out))
-    for label in waiting:
-        print(f"waiting {label}: its rl artifact is not in the store yet")
-    for i, (pol, split, out) in enumerate(todo, 1):
-        cmd = command(pol, split, out, args)
-        print(f"[{i}/{len(todo)}] {' '.join(cmd[1:])}", flush=True)
-        if not args.dry_run:
+
+    def plan(verbose: bool):
+        today = dt.date.today().isoformat()
+        pols, waiting, collect_key = policies(project, args.sweep, points)
+        tag = args.tag or f"c{collect_key[:8]}"
+        todo = []
+        for split in splits:
+            for pol in pols:
+                out, done = target(args.folder, file_prefix(pol.stem, pol.seed, split, tag), today)
+                if verbose:
+                    print(f"{'done   ' if done else 'to run '} {out.name}")
+                if not done:
+                    todo.append((pol, split, out))
+        if verbose:
+            for label in waiting:
+                print(f"waiting {label}: its rl artifact is not in the store yet")
+        return todo, waiting, pols, tag
+
+    if args.dry_run:
+        todo, _, pols, tag = plan(True)
+        for i, (pol, split, out) in enumerate(todo, 1):
+            print(f"[{i}/{len(todo)}] {' '.join(command(pol, split, out, args)[1:])}")
+    else:
+        def run(pol, split, out):
+            cmd = command(pol, split, out, args)
+            print("  " + " ".join(cmd[1:]), flush=True)
             subprocess.run(cmd, check=True)
+
+        pols, tag = drain(plan, run, args.follow)
     entries = manifest_entries(args.folder, pols, splits, tag)
     if entries:
         print("comparisons.json entries the finished files support:")
         for e in entries:
             print("  " + json.dumps(e))
-
 
 if __name__ == "__main__":
     main()

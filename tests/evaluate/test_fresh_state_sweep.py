@@ -8,7 +8,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 
-from fresh_state_sweep import Policy, manifest_entries, policies, target  # noqa: E402
+from fresh_state_sweep import Policy, drain, manifest_entries, policies, target  # noqa: E402
 from fresh_state_table import episodes_file, file_prefix  # noqa: E402
 
 
@@ -82,3 +82,20 @@ def test_sft_is_offered_as_soon_as_it_exists_and_ppo_once_its_rl_artifact_does(t
     project = SimpleNamespace(store=FakeStore(tmp_path / "b", held))
     with pytest.raises(SystemExit, match="share sft.seed 0"):
         policies(project, "g", [point("p0", "s0", 0, "r0"), point("q0", "s0b", 0, "r0g")])
+
+
+def test_follow_evaluates_each_policy_as_its_artifact_lands_out_of_domain_first_and_stops_when_none_waits():
+    sft, ppo = Policy("sft", 0, (), None), Policy("g-wm", 0, (), Path("rl"))
+    landed, ran, slept = [[sft], [sft], [sft], [sft, ppo]], [], []  # the store as the sweep fills it, one look at a time
+
+    def plan(verbose):
+        pols = landed[0] if len(landed) == 1 else landed.pop(0)
+        todo = [(p, sp, Path(f"{p.stem}_{sp}")) for sp in ("ood", "ind") for p in pols if f"{p.stem}_{sp}" not in ran]
+        return todo, ([] if ppo in pols else ["p0"]), pols, "t"
+
+    pols, tag = drain(plan, lambda p, sp, out: ran.append(out.name), follow=60, sleep=slept.append)
+    assert ran == ["sft_ood", "sft_ind", "g-wm_ood", "g-wm_ind"] and slept == [60] and (pols, tag) == ([sft, ppo], "t")
+    # without --follow it evaluates what is there and stops, though a point waits
+    landed[:], ran[:], slept[:] = [[sft]], [], []
+    assert drain(plan, lambda p, sp, out: ran.append(out.name), follow=0, sleep=slept.append) == ([sft], "t")
+    assert ran == ["sft_ood", "sft_ind"] and slept == []
