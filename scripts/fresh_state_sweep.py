@@ -127,10 +127,13 @@ def drain(plan, run, follow: float, sleep=time.sleep) -> tuple[list[Policy], str
     split). With ``follow`` > 0 it waits that many seconds whenever nothing is left but points still wait
     for their rl artifact; it returns (the last plan's policies, tag) once nothing is left to run or wait for."""
     todo, waiting, pols, tag = plan(True)
-    done = 0
+    done, last = 0, None
     while True:
         if todo:
             pol, split, out = todo[0]
+            if (pol, split, out) == last:
+                raise SystemExit(f"{out}: still missing after its evaluation finished; stopping rather than rerunning it")
+            last = (pol, split, out)
             done += 1
             print(f"[{done}/{done + len(todo) - 1}] {pol.stem} seed {pol.seed} {split} -> {out.name}", flush=True)
             run(pol, split, out)
@@ -231,6 +234,7 @@ def main() -> None:
         print("comparisons.json entries the finished files support:")
         for e in entries:
             print("  " + json.dumps(e))
+
 
 if __name__ == "__main__":
     main()

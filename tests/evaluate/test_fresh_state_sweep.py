@@ -99,3 +99,7 @@ def test_follow_evaluates_each_policy_as_its_artifact_lands_out_of_domain_first_
     landed[:], ran[:], slept[:] = [[sft]], [], []
     assert drain(plan, lambda p, sp, out: ran.append(out.name), follow=0, sleep=slept.append) == ([sft], "t")
     assert ran == ["sft_ood", "sft_ind"] and slept == []
+    # an evaluation that leaves no file stops the loop instead of repeating it
+    landed[:], ran[:] = [[sft]], []
+    with pytest.raises(SystemExit, match="still missing"):
+        drain(plan, lambda p, sp, out: None, follow=0, sleep=slept.append)
