@@ -73,7 +73,7 @@ def test_gated_ppo_is_its_own_method_and_every_valid_config_has_a_table_label():
     from stages.rl import REWARDS, Config, method_of
 
     assert method_of("wm", "success", calibration_ratio=0.5) == "wm_gated"
-    assert method_of("wm", "success", calibration_ratio=0.0) == "wm"  # the default: the same label as before
+    assert method_of("wm", "success", calibration_ratio=0.0) == "wm"  # the gate off: the same label as before
     methods = set()
     for reward, terms, algorithm, select, ratio in itertools.product(
             REWARDS, ("success", "dense"), ("ppo", "filtered_bc"), ("success", "random"), (0.0, 0.5)):
@@ -84,3 +84,27 @@ def test_gated_ppo_is_its_own_method_and_every_valid_config_has_a_table_label():
         methods.add(method_of(cfg.reward, cfg.rule_terms, cfg.algorithm, cfg.fbc_select, cfg.calibration_ratio))
     assert {"wm", "wm_gated", "embedding_gated", "proxy_gated", "rule", "rule_dense", "wm_fbc"} <= methods
     assert methods <= set(METHODS), sorted(methods - set(METHODS))  # evaluate and the sweep report label each one
+
+
+def test_ppo_in_the_world_model_is_gated_and_anchored_unless_told_otherwise():
+    from pydantic import ValidationError
+
+    from stages.rl import WM_PPO_CALIBRATION_RATIO, WM_PPO_DEMO_BC_BATCHES, Config, method_of
+
+    def knobs(**kw):
+        cfg = Config(**kw)
+        return cfg.calibration_ratio, cfg.demo_bc_batches
+
+    on = (WM_PPO_CALIBRATION_RATIO, WM_PPO_DEMO_BC_BATCHES)
+    assert on == (0.5, 8)
+    assert knobs() == on and knobs(reward="embedding") == on and knobs(reward="proxy") == on
+    assert knobs(reward="rule") == (0.0, 0)  # PPO in ManiSkill: no gate, no anchor
+    assert knobs(algorithm="filtered_bc") == (0.0, 0)  # no PPO update to gate or anchor
+    assert knobs(calibration_ratio=0.0) == (0.0, 8) and knobs(demo_bc_batches=0) == (0.5, 0)  # a set value wins
+    assert knobs(reward="rule", demo_bc_batches=8) == (0.0, 8)
+    assert method_of("wm", "success", calibration_ratio=Config().calibration_ratio) == "wm_gated"
+    with pytest.raises(ValidationError, match="calibration_ratio=0.5 gates"):
+        Config(reward="rule", calibration_ratio=0.5)
+    dumped = Config(reward="proxy").model_dump(mode="json")  # what the stage key hashes: the values used
+    assert dumped["calibration_ratio"] == 0.5 and dumped["demo_bc_batches"] == 8
+    assert Config.model_validate(dumped) == Config(reward="proxy")
