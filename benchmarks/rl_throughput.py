@@ -20,8 +20,8 @@ ManiSkill) and prints each round's ratio and their median: on a 2-core CPU the M
 moved between 36 and 53 steps/s from one run to the next (docs/rl.md, "Throughput"), so one round's
 ratio carries that spread and the rounds show it within one run.
 
-On a CPU both envs run on ``--threads`` torch threads, by default pipeline.yaml's ``jobs``: the rl stage
-of a single run uses that many (``ctx.jobs``).
+On a CPU both envs run on ``--threads`` torch threads, by default the rl stage's ``threads`` (what the
+stage runs with).
 
 The instruction's embedding is a fixed random unit vector (no text-encoder weights needed).
 """
@@ -104,11 +104,11 @@ def timed_learn(env, steps: int, num_envs: int, device: str) -> float:
     return (model.num_timesteps - 64 * num_envs) / (time.perf_counter() - t)
 
 
-def pipeline_jobs() -> int:
-    """pipeline.yaml's ``jobs``: the torch threads the rl stage of a single run is given on a CPU."""
-    from pipeline.spec import load_spec
+def stage_threads() -> int:
+    """The torch threads the rl stage runs with on a CPU: its config's default ``threads``."""
+    from stages.rl import Config
 
-    return load_spec(Path(__file__).resolve().parents[1] / "pipeline.yaml").jobs
+    return Config().threads
 
 
 class Setup:
@@ -161,13 +161,13 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3,
                     help="measure each env this many times, in turn, and print every round's ratio and the median")
     ap.add_argument("--threads", type=int, default=None,
-                    help="torch threads on a CPU, in both envs (default: pipeline.yaml's jobs, what the rl stage "
-                         "of a single run is given)")
+                    help="torch threads on a CPU, in both envs (default: the rl stage's `threads`, what it runs "
+                         "with)")
     args = ap.parse_args()
     if args.rounds < 1:
         ap.error(f"--rounds must be >= 1, got {args.rounds}")
     if args.threads is None:
-        args.threads = pipeline_jobs()
+        args.threads = stage_threads()
     if args.device == "cpu":
         torch.set_num_threads(args.threads)
     dev = args.device

@@ -92,6 +92,9 @@ class Config(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     seed: int = Field(0, description="seed of PPO, env sampling and head fitting")
+    threads: int = Field(2, ge=1, description="torch CPU threads (ignored on CUDA); in the key because on a CPU the "
+                         "count changes every step's floating-point reductions, so the policy PPO ends with "
+                         "(docs/rl.md, 'The thread count is part of the result')")
     reward: Literal[REWARDS] = Field("wm", description="reward module (stages.rl.rewards.REGISTRY)")
     # reward `wm`
     alpha: float = Field(5.0, ge=0, description="weight of the sparse done-head reward")
@@ -284,8 +287,8 @@ def run(ctx) -> None:
     from stages.rl.train import train
 
     cfg: Config = ctx.config
-    if ctx.device == "cpu":  # every core the executor gave this node: the world-model env's batched step,
-        torch.set_num_threads(max(1, ctx.jobs))  # decoding and LPIPS ran 1.3-1.7x faster on 2 than on 1 (docs/rl.md)
+    if ctx.device == "cpu":  # the config's count, not the cores the executor gave this node: the same key
+        torch.set_num_threads(cfg.threads)  # then gives the same weights in a single run and in a sweep wave
     inputs = RLInputs.load(ctx, cfg)
     metrics = train(ctx, cfg, inputs)
     facts = {"reward": cfg.reward, "success_payout": cfg.success_payout,

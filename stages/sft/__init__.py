@@ -54,6 +54,9 @@ class Config(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     seed: int = Field(0, description="seed of initialisation, the held-out split and batch order")
+    threads: int = Field(2, ge=1, description="torch CPU threads (ignored on CUDA); in the key: on a CPU the count "
+                         "changes the floating-point reductions, so the weights (docs/rl.md, 'The thread count is "
+                         "part of the result')")
     tasks: list[Task] = Field(
         list(TASKS), min_length=1, description="tasks the one policy is cloned on (multi-task when several)")
     kinds: list[Literal[("optimal", *SUBOPTIMAL_KINDS)]] = Field(
@@ -114,7 +117,7 @@ def run(ctx) -> None:
     cfg: Config = ctx.config
     t0 = time.perf_counter()
     if ctx.device == "cpu":
-        torch.set_num_threads(max(1, ctx.jobs))
+        torch.set_num_threads(cfg.threads)
     ds, store = Dataset(ctx.input("collect")), TokenStore(ctx.input("tokenize"))
     tok = load_tokenizer(ctx.input("tokenize"), ctx.device)
     instructions = sorted({m.instruction for m in ds.episodes})

@@ -78,8 +78,9 @@ class Config(BaseModel):
     action_steps: int = Field(3000, ge=1, description="optimisation steps of the action world model (at 800 it tied "
                               "copy-last and ignored its actions on the small data; 3000 beat it, docs/world_model.md)")
     text_steps: int = Field(800, ge=1, description="optimisation steps of the text world model (goal imagination, done head)")
-    train_threads: int = Field(0, ge=0, description="torch CPU threads while training (0 = the run's --jobs); "
-                               "rollouts and evaluation use 1")
+    train_threads: int = Field(2, ge=1, description="torch CPU threads while training (rollouts and evaluation use "
+                               "1); in the key: on a CPU the count changes the floating-point reductions, so the "
+                               "weights (docs/rl.md, 'The thread count is part of the result')")
     batch_size: int = Field(8, ge=1, description="clips per optimisation step")
     lr: float = Field(1e-3, gt=0, description="AdamW peak learning rate")
     weight_decay: float = Field(0.05, ge=0, description="AdamW weight decay of matrices")
@@ -182,7 +183,7 @@ def run(ctx) -> None:
     # training batches (8 clips x 8 frames x 64 tokens) use both cores: 0.53 s/step at 2 threads vs 0.85 at 1;
     # rollouts (a frame at a time) are faster at 1 thread (docs/world_model.md)
     if cpu:
-        torch.set_num_threads(cfg.train_threads or max(1, ctx.jobs))
+        torch.set_num_threads(cfg.train_threads)
     curves = Curves(ctx.out)  # TensorBoard: both world models' losses and the proprioception head's
     checkpoints = ctx.checkpoints()  # a run killed while training resumes at the last saved step
     for i, kind in enumerate(("action", "text")):

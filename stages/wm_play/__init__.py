@@ -41,8 +41,9 @@ Checkpoints (``ctx.checkpoints()``, pipeline.checkpoints):
     commits what an uninterrupted run commits.
 
 Threads (CPU): the play runs on one torch thread (a policy step is a batch of one, the simulator is
-serial), the fine-tune on ``ctx.jobs`` (the cores the executor gave this node): its batches use both
-cores of a 2-core machine (docs/rl.md, "wm_play").
+serial), the fine-tune on ``threads`` (default 2, in the key, not the cores the executor gave this node,
+so a key gives the same weights in a single run and in a sweep wave): its batches use both cores of a
+2-core machine (docs/rl.md, "wm_play").
 
 Toy profile:
     two play episodes of at most 15 steps and three fine-tuning steps: the real path, tiny.
@@ -73,6 +74,9 @@ class Config(BaseModel):
     steps: int = Field(2000, ge=1, description="fine-tuning steps of the action world model")
     lr: float = Field(3e-4, gt=0, description="their peak learning rate (train_wm's schedule)")
     weight: int = Field(2, ge=1, description="times each play episode is listed beside the training episodes")
+    threads: int = Field(2, ge=1, description="torch CPU threads of the fine-tune (ignored on CUDA); in the key: on a "
+                         "CPU the count changes the floating-point reductions, so the weights (docs/rl.md, 'The "
+                         "thread count is part of the result')")
 
 
 def run(ctx) -> None:
@@ -143,7 +147,7 @@ def _play_and_finetune(ctx, cfg: Config) -> dict:
     train_eps = [e for e in load_episodes(ctx.input("collect"), ctx.input("tokenize"), frame_skip=wm.spec.frame_skip)
                  if e.episode_id in train]
     if ctx.device == "cpu":
-        torch.set_num_threads(max(1, ctx.jobs))  # training batches: every core the node was given
+        torch.set_num_threads(cfg.threads)  # training batches: the config's count, whatever the executor gave
     resume, save = training_checkpoint(checkpoints, "finetune")
     with ctx.progress(cfg.steps, "wm_play: world model on the play", unit="step") as bar:
         tuned, result = finetune_on_play(wm, wm_dir, train_eps, play, steps=cfg.steps, lr=cfg.lr, weight=cfg.weight,

@@ -53,7 +53,7 @@ def test_the_validation_states_lie_at_evaluate_seed_60_plus_the_rl_seed():
 
 def test_the_acceptance_episodes_leave_the_stages_thread_count_as_they_found_it(monkeypatch, tmp_path):
     """The evaluate jobs' simulator sets one torch thread (right in an evaluate worker); inside the rl
-    stage, which runs on ``ctx.jobs`` threads, the imagined-success check after the test must not
+    stage, which runs on its config's ``threads``, the imagined-success check after the test must not
     inherit it. The jobs here are fakes that do what the real ones do to the thread count."""
     from types import SimpleNamespace
 
