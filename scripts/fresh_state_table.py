@@ -9,11 +9,13 @@ the seeds, and gives both intervals: over the pooled episodes (these policies) a
 (Student-t: what another seed would give).
 
     PYTHONPATH=. .venv/bin/python scripts/fresh_state_table.py [--manifest M] [--figure PNG]
-        [--by-task [--group push+pull=push,pull ...]]
+        [--by-task [--group push+pull=push,pull ...]] [--rates]
 
 ``--by-task`` adds a second table with the same two intervals per task (every task the episodes hold,
 in the order they first appear) and per ``--group`` of tasks pooled (``NAME=task,task``; repeatable):
-where in the task suite a method gains or loses.
+where in the task suite a method gains or loses. ``--rates`` adds the paper's Table 2 layout: each
+compared policy's success rate per split and task, seeds pooled, and over all tasks with its 95%
+Wilson interval (unpaired: the differences are in the tables above).
 
 File names: ``<stem>_s<seed>_<tag>_<date>.jsonl`` in domain, ``<stem>_ood_s<seed>_<tag>_<date>.jsonl``
 out of domain; each (stem, seed, split) must match exactly one file.
@@ -172,6 +174,51 @@ def task_table(rows: list[tuple[Comparison, str, dict]]) -> str:
     return "\n".join(lines)
 
 
+def rates(comparisons: list[Comparison], folder: Path) -> list[tuple[str, tuple[int, ...], dict]]:
+    """Table 2's layout: (stem, seeds, {(split, task or "all"): (successes, episodes)}) for each
+    comparison's baseline and compared stem, once per (stem, seeds, splits), baselines first."""
+    seen, out = set(), []
+    for c in comparisons:
+        for stem in (c.baseline, c.stem):
+            if (stem, c.seeds, c.splits) in seen:
+                continue
+            seen.add((stem, c.seeds, c.splits))
+            counts: dict[tuple[str, str], list[int]] = {}
+            for seed in c.seeds:
+                for split in c.splits:
+                    for r in episodes(episodes_file(folder, stem, seed, split, c.tag)):
+                        for cell in ((split, r["task"]), (split, "all")):
+                            k = counts.setdefault(cell, [0, 0])
+                            k[0] += bool(r["success"])
+                            k[1] += 1
+            out.append((stem, c.seeds, {cell: tuple(k) for cell, k in counts.items()}))
+    return out
+
+
+def rates_table(rows: list[tuple[str, tuple[int, ...], dict]]) -> str:
+    """Markdown: success rate per split and task (seeds pooled), and per split over all tasks with its
+    95% Wilson interval and episode count; a cell the episodes lack is '-'."""
+    from stages.evaluate.stats import wilson
+
+    tasks = list(dict.fromkeys(t for _, _, cells in rows for (_, t) in cells if t != "all"))
+    head = [f"{split.upper()} {t}" for split in SPLITS for t in [*tasks, "all"]]
+    lines = ["| policy | seeds | " + " | ".join(head) + " |", "|---|---|" + "---|" * len(head)]
+    for stem, seeds, cells in rows:
+        vals = []
+        for split in SPLITS:
+            for t in tasks:
+                k = cells.get((split, t))
+                vals.append("-" if k is None else f"{k[0] / k[1]:.2f}")
+            k = cells.get((split, "all"))
+            if k is None:
+                vals.append("-")
+            else:
+                rate, lo, hi = wilson(*k)
+                vals.append(f"**{rate:.2f}** [{lo:.2f}, {hi:.2f}] (n = {k[1]:,})")
+        lines.append(f"| `{stem}` | {', '.join(map(str, seeds))} | " + " | ".join(vals) + " |")
+    return "\n".join(lines)
+
+
 def figure(rows: list[tuple[Comparison, dict]], path: Path) -> None:
     """A forest plot per split: pooled interval (thick), across-seed interval (thin), seeds (dots)."""
     import matplotlib
@@ -213,6 +260,8 @@ def main() -> None:
     ap.add_argument("--by-task", action="store_true", help="also print every comparison per task")
     ap.add_argument("--group", action="append", default=[], metavar="NAME=TASK,TASK",
                     help="with --by-task: also pool these tasks as one row (repeatable)")
+    ap.add_argument("--rates", action="store_true",
+                    help="also print each compared policy's success rate per split and task (Table 2's layout)")
     args = ap.parse_args()
     if args.group and not args.by_task:
         ap.error("--group needs --by-task")
@@ -224,6 +273,9 @@ def main() -> None:
         groups = task_groups(comparisons, folder, args.group)
         print()
         print(task_table([(c, name, compare(c, folder, tasks)) for c in comparisons for name, tasks in groups]))
+    if args.rates:
+        print()
+        print(rates_table(rates(comparisons, folder)))
     if args.figure:
         figure(rows, args.figure)
         print(f"figure: {args.figure}", file=sys.stderr)

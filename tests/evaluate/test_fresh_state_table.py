@@ -109,3 +109,25 @@ def test_bad_group_names_what_is_wrong(tmp_path, args, message):
         {"label": "meth", "stem": "meth", "baseline": "sft", "seeds": [0], "tag": "m", "splits": ["ind"]}]}))
     out = _run("--manifest", str(tmp_path / "comparisons.json"), *args)
     assert out.returncode != 0 and message in out.stderr, out.stderr
+
+
+def test_rates_print_each_policys_success_per_task_and_split_once(tmp_path):
+    tasks = ("push", "pull")
+    for seed in (0, 1):
+        for split in ("ind", "ood"):
+            infix = "" if split == "ind" else "_ood"
+            _write(tmp_path, f"sft{infix}_s{seed}_m_2026-01-01.jsonl", "sft", split, {0, 4}, tasks)
+            _write(tmp_path, f"meth{infix}_s{seed}_m_2026-01-02.jsonl", "ppo", split, {0, 1, 2, 3}, tasks)
+    (tmp_path / "comparisons.json").write_text(json.dumps({"comparisons": [
+        {"label": "meth", "stem": "meth", "baseline": "sft", "seeds": [0, 1], "tag": "m"},
+        {"label": "meth again", "stem": "meth", "baseline": "sft", "seeds": [0, 1], "tag": "m"}]}))
+    out = _run("--manifest", str(tmp_path / "comparisons.json"), "--rates")
+    assert out.returncode == 0, out.stderr
+    rates = out.stdout.strip().split("\n\n")[-1].splitlines()
+    assert rates[0] == ("| policy | seeds | IND push | IND pull | IND all | OOD push | OOD pull | OOD all |")
+    body = [line for line in rates[2:]]
+    assert len(body) == 2  # each (stem, seeds) once, the baseline first
+    # sft: 1 of 4 per task -> 0.25; 4 of 16 over both tasks and seeds
+    assert body[0].startswith("| `sft` | 0, 1 | 0.25 | 0.25 | **0.25** [") and body[0].endswith("(n = 16) |")
+    # meth: every push state, no pull state -> 1.00 / 0.00, 8 of 16 over all
+    assert body[1].startswith("| `meth` | 0, 1 | 1.00 | 0.00 | **0.50** [0.28, 0.72] (n = 16) |")
