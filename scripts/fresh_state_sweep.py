@@ -13,7 +13,9 @@ reads, it runs ``scripts/evaluate_sft.py <collect> <tokenize> <sft> [--rl <rl>] 
 every policy's first split before any second one (``--splits ood,ind``: the out-of-domain files first).
 The stems are ``sft`` and ``<sweep>-<method>`` (the method from the rl artifact's ``rl.json``, e.g.
 ``calibration_gate-wm_gated``); ``<seed>`` is the point's ``sft.seed``. The tag names the store
-(default: ``c`` + the collect key's first 8 characters), so files from two stores never pair.
+(default: ``c`` + the collect key's first 8 characters + 4 hex digits of its collect artifact's manifest,
+which differ between two builds of the same key), so files from two stores never pair. Files written
+before 2026-12-04 carry the old default, the collect key alone (``cc6f250d4``).
 
 Resumable at two levels: a file that exists is skipped, and a killed evaluation resumes from its
 ``.partial`` file (``evaluate_sft.py``'s own resume; its date is kept). Points whose rl artifact is
@@ -114,6 +116,20 @@ def policies(project, sweep: str, points) -> tuple[list[Policy], list[str], str]
     return ordered, waiting, next(iter(collect_keys), "")
 
 
+def store_tag(store, collect_key: str) -> str:
+    """The default tag: ``c`` + the collect key's first 8 characters + the first 4 hex digits of the
+    committed collect artifact's manifest (its file digests, creation time and host), so a store
+    rebuilt at the same collect key gets another tag and its policies never pair with the old files."""
+    import hashlib
+
+    from pipeline.store import MANIFEST
+
+    found = store.lookup("collect", collect_key)
+    if found.state != "ok":
+        return f"c{collect_key[:8]}"
+    return f"c{collect_key[:8]}{hashlib.sha256((found.path / MANIFEST).read_bytes()).hexdigest()[:4]}"
+
+
 def command(pol: Policy, split: str, out: Path, args) -> list[str]:
     cmd = [sys.executable, str(ROOT / "scripts" / "evaluate_sft.py"), *map(str, pol.dirs),
            "--episodes", str(args.episodes), "--seed", str(args.seed), "--jobs", str(args.jobs),
@@ -168,7 +184,8 @@ def main() -> None:
     ap.add_argument("--profile", default=None)
     ap.add_argument("--set", action="append", default=[], dest="sets", metavar="STAGE.KEY=VALUE")
     ap.add_argument("--store", type=Path, default=None, help="store directory (default: the spec's)")
-    ap.add_argument("--tag", default=None, help="the store's tag in the file names (default: c + collect key[:8])")
+    ap.add_argument("--tag", default=None, help="the store's tag in the file names (default: c + collect key[:8] + "
+                    "4 hex digits of the collect artifact's manifest)")
     ap.add_argument("--episodes", type=int, default=100, help="episodes per (task, split)")
     ap.add_argument("--seed", type=int, default=1, help="evaluate_sft.py --seed: 1 draws states apart from the stage's")
     ap.add_argument("--max-steps", type=int, default=75, help="evaluate_sft.py --max-steps")
@@ -204,7 +221,7 @@ def main() -> None:
     def plan(verbose: bool):
         today = dt.date.today().isoformat()
         pols, waiting, collect_key = policies(project, args.sweep, points)
-        tag = args.tag or f"c{collect_key[:8]}"
+        tag = args.tag or store_tag(project.store, collect_key)
         todo = []
         for split in splits:
             for pol in pols:

@@ -8,7 +8,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 
-from fresh_state_sweep import Policy, drain, manifest_entries, policies, target  # noqa: E402
+from fresh_state_sweep import Policy, drain, manifest_entries, policies, store_tag, target  # noqa: E402
 from fresh_state_table import episodes_file, file_prefix  # noqa: E402
 
 
@@ -103,3 +103,21 @@ def test_follow_evaluates_each_policy_as_its_artifact_lands_out_of_domain_first_
     landed[:], ran[:] = [[sft]], []
     with pytest.raises(SystemExit, match="still missing"):
         drain(plan, lambda p, sp, out: None, follow=0, sleep=slept.append)
+
+
+def test_two_builds_of_one_collect_key_get_two_default_tags(tmp_path):
+    """A store rebuilt at the same collect key is another draw of every stage: its fresh-state files
+    must not be taken for the old store's (a finished file is skipped, so they would pair)."""
+    from pipeline.store import Store
+
+    key = "c6f250d4ab2c" + "0" * 52
+    tags = []
+    for build in ("a", "b"):
+        store = Store(tmp_path / build)
+        assert store_tag(store, key) == "cc6f250d4"  # nothing committed yet: the key alone
+        staging = store.staging("collect", key)
+        (staging / "episodes.txt").write_text("the same data\n")
+        store.commit(staging, "collect", key, {"config": {}}, extra={"build": build})
+        tags.append(store_tag(store, key))
+    assert tags[0] != tags[1] and all(t.startswith("cc6f250d4") and len(t) == 13 and "_" not in t for t in tags)
+    assert store_tag(Store(tmp_path / "a"), key) == tags[0]  # stable for one store
