@@ -126,7 +126,7 @@ def _rate(num: int, den: int) -> float | None:
 def run(ctx: StageContext) -> None:
     from stages.collect.catalog import write_scenes_json
     from stages.collect.dataset import SHARD_DIR, EpisodeMeta, SimFacts, write_index, write_sim_facts
-    from stages.collect.worker import collect_shard
+    from stages.collect.resume import collect_or_resume
 
     cfg: Config = ctx.config
     t0 = time.perf_counter()
@@ -136,15 +136,18 @@ def run(ctx: StageContext) -> None:
     shard_dir = ctx.out / SHARD_DIR
     shard_dir.mkdir(parents=True, exist_ok=True)
     jobs = plan_jobs(cfg, scenes, shard_dir)
+    checkpoints = ctx.checkpoints()
+    for job in jobs:  # each finished shard is a checkpoint: a killed run resumes at the next shard (stages.collect.resume)
+        job["checkpoints"] = None if checkpoints.root is None else str(checkpoints.root)
     n_planned = sum(len(j["episodes"]) for j in jobs)
     ctx.log.info("collect: %d episodes in %d shards, %d workers", n_planned, len(jobs), ctx.jobs)
     if ctx.mapper is not None and ctx.jobs > 1:
-        results = ctx.map(collect_shard, jobs, desc="collect shards")
+        results = ctx.map(collect_or_resume, jobs, desc="collect shards")
     else:  # in-process: a per-trajectory bar with the rates
         results = []
         with ctx.progress(n_planned, "collect", unit="traj") as bar:
             for job in jobs:
-                results.append(collect_shard(job))
+                results.append(collect_or_resume(job))
                 st = [r["stats"] for r in results]
                 attempts = sum(s["attempts"] for s in st)
                 bar.update(len(job["episodes"]))
