@@ -47,6 +47,14 @@ def _check_name(name: str) -> None:
         raise ValueError(f"checkpoint name {name!r}: use letters, digits, '_', '.', '-' (not starting with '.' or '-')")
 
 
+def summarize(names: list[str], shown: int = 4) -> str:
+    """``names`` joined for a status line: all of them up to ``shown``, else the first ``shown`` and a count
+    (collect keeps one checkpoint per shard: a hundred names would fill the screen)."""
+    if len(names) <= shown:
+        return ", ".join(names)
+    return f"{', '.join(names[:shown])} and {len(names) - shown} more ({len(names)} in all)"
+
+
 class Checkpoints:
     """The checkpoints of one (stage, key); ``root`` None: off."""
 

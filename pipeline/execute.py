@@ -16,6 +16,7 @@ import traceback
 from pathlib import Path
 from typing import Any, Mapping
 
+from pipeline.checkpoints import summarize
 from pipeline.context import StageContext
 from pipeline.errors import PipelineError
 from pipeline.progress import Progress
@@ -150,7 +151,7 @@ def execute_node(p: dict[str, Any]) -> dict[str, Any]:
             log.info("config: %s", json.dumps(p["config"], sort_keys=True), extra=file_only)
             resumed = ctx.checkpoints().names()
             if resumed:
-                log.info("checkpoints from an earlier, unfinished run of this key: %s", ", ".join(resumed))
+                log.info("checkpoints from an earlier, unfinished run of this key: %s", summarize(resumed))
             if p["inputs"]:
                 log.info("inputs verified: %s, %.1f MiB in %.2f s", ", ".join(sorted(p["inputs"])), in_bytes / 2**20, t_in)
             mod.run(ctx)
@@ -170,7 +171,7 @@ def execute_node(p: dict[str, Any]) -> dict[str, Any]:
             resumable = ctx.checkpoints().names()
             if not resumable:
                 store.drop_partial(stage, key)
-            note = f" (checkpoints kept for the next run: {', '.join(resumable)})" if resumable else ""
+            note = f" (checkpoints kept for the next run: {summarize(resumable)})" if resumable else ""
             raise StageFailed(stage, key, f"{e.__class__.__name__}: {e}{note}", kept) from e
         handler.close()
         log.removeHandler(handler)

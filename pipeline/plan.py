@@ -11,7 +11,7 @@ from typing import Any, Mapping, Sequence
 import yaml
 from pydantic import BaseModel, ValidationError
 
-from pipeline.checkpoints import Checkpoints
+from pipeline.checkpoints import Checkpoints, summarize
 from pipeline.errors import PipelineError
 from pipeline.graph import ancestors, descendants, select, topo_order
 from pipeline.keys import code_digest, stage_key
@@ -237,7 +237,7 @@ class Project:
         self._judge_missing(node, look)
         resumable = Checkpoints(self.store.partial(node.stage, node.key)).names()
         if resumable:  # --force drops them before the stage starts (pipeline.execute)
-            node.reasons.append(f"{'drops' if force else 'resumes from'} checkpoints: {', '.join(resumable)}")
+            node.reasons.append(f"{'drops' if force else 'resumes from'} checkpoints: {summarize(resumable)}")
 
     def _judge_missing(self, node: Node, look) -> None:
         if look.state == "invalid":

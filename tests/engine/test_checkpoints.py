@@ -108,3 +108,12 @@ def test_gc_removes_checkpoints_of_committed_keys_and_keeps_unfinished_ones(ws):
     assert "removes" in out and any((ws.store / "partial" / "tokenize").iterdir())
     ws.cli("gc", "--partial")
     assert not any((ws.store / "partial" / "tokenize").iterdir())
+
+
+def test_a_long_list_of_checkpoints_is_summarised_for_status_lines():
+    from pipeline.checkpoints import summarize
+
+    assert summarize(["play"]) == "play"
+    assert summarize([f"shard-{i:04d}" for i in range(4)]) == "shard-0000, shard-0001, shard-0002, shard-0003"
+    names = [f"shard-{i:04d}" for i in range(100)]
+    assert summarize(names) == "shard-0000, shard-0001, shard-0002, shard-0003 and 96 more (100 in all)"
