@@ -29,7 +29,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rl_throughput import Setup, pipeline_jobs, timed_learn  # noqa: E402
+from rl_throughput import Setup, stage_threads, timed_learn  # noqa: E402
 
 from stages.common import precision  # noqa: E402
 
@@ -54,12 +54,12 @@ def main() -> None:
     ap.add_argument("--wm-dtype", choices=["fp32", "bf16", "auto"], default="fp32",
                     help="the env's precision (default fp32: the only one whose layout is timed)")
     ap.add_argument("--threads", type=int, default=None,
-                    help="torch threads (default: pipeline.yaml's jobs, what the rl stage of a single run is given)")
+                    help="torch threads (default: the rl stage's `threads`, what it runs with)")
     args = ap.parse_args()
     if args.rounds < 1:
         ap.error(f"--rounds must be >= 1, got {args.rounds}")
     if args.threads is None:
-        args.threads = pipeline_jobs()
+        args.threads = stage_threads()
     torch.set_num_threads(args.threads)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
 

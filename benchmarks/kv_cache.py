@@ -22,7 +22,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from rl_throughput import Setup, pipeline_jobs  # noqa: E402
+from rl_throughput import Setup, stage_threads  # noqa: E402
 
 
 def stepped(env, setup: Setup, cache: torch.dtype, steps: int) -> tuple[float, list]:
@@ -48,11 +48,11 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=8)
     ap.add_argument("--wm-dtype", choices=["fp32", "bf16"], default="bf16")
     ap.add_argument("--threads", type=int, default=None,
-                    help="torch threads (default: pipeline.yaml's jobs, what the rl stage of a single run is given)")
+                    help="torch threads (default: the rl stage's `threads`, what it runs with)")
     args = ap.parse_args()
     if args.rounds < 1:
         ap.error(f"--rounds must be >= 1, got {args.rounds}")
-    torch.set_num_threads(args.threads or pipeline_jobs())
+    torch.set_num_threads(args.threads or stage_threads())
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
     setup = Setup("cpu")
