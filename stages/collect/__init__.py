@@ -184,8 +184,10 @@ def run(ctx: StageContext) -> None:
         execution_success_rate=_rate(attempts - tot("plan_failures") - tot("exec_failures"), attempts - tot("plan_failures")),
         replayed=tot("replayed"),
         replay_success_rate=_rate(sum(r["stats"]["replay_success"] for r in results), tot("replayed")),
-        per_task=per_task, wall_seconds=wall,
-        trajectories_per_second=len(metas) / wall, frames_per_second=tot("frames") / wall,
+        per_task=per_task, wall_seconds=wall, shards_resumed=sum(bool(r.get("resumed")) for r in results),
+        # rates over what this run collected (a resumed shard took no time here)
+        trajectories_per_second=sum(len(r["episodes"]) for r in results if not r.get("resumed")) / wall,
+        frames_per_second=sum(r["stats"]["frames"] for r in results if not r.get("resumed")) / wall,
     )
     ctx.write_metrics(metrics)
     ctx.log.info("collect: %d episodes, %.2f traj/s, planner success %.3f, replay success %s, %.0f s",

@@ -45,7 +45,7 @@ def collect_or_resume(job: dict) -> dict:
     saved = ckpt.load(name)  # None when absent or damaged (a damaged one is removed and redone)
     if saved is not None:
         _link_or_copy(saved / shard.name, shard)
-        return json.loads((saved / RESULT).read_text())
+        return {**json.loads((saved / RESULT).read_text()), "resumed": True}  # not collected by this run
     result = collect_shard({k: v for k, v in job.items() if k != "checkpoints"})
     if root:
         with ckpt.save(name) as d:

@@ -66,6 +66,7 @@ def test_sigkill_mid_shard_leaves_only_whole_episodes(tmp_path):
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=600)
     resumed, metrics = Dataset(again), json.loads((again / "metrics.json").read_text())
     assert len(resumed.episodes) == metrics["episodes"] > len(ds.episodes)  # finished what the kill cut short
+    assert metrics["shards_resumed"] == len(finished)
     assert {m.episode_id for m in ds.episodes} <= {m.episode_id for m in resumed.episodes}
     for name, data in finished.items():  # the same file, linked back from its checkpoint, not a re-collection
         assert (again / SHARD_DIR / name).read_bytes() == data

@@ -38,7 +38,8 @@ def test_a_finished_shard_is_resumed_from_its_checkpoint_not_collected_again(tmp
     assert (ckpt / checkpoint_name("push-0000.mcap")).is_dir()
     again = collect_or_resume(_job(second, ckpt))
     assert fake_worker == [str(first / "push-0000.mcap")]  # not called again
-    assert again == result and (second / "push-0000.mcap").read_bytes() == b"mcap bytes of push"
+    assert again == {**result, "resumed": True} and (second / "push-0000.mcap").read_bytes() == b"mcap bytes of push"
+    assert "resumed" not in result
 
 
 def test_a_damaged_checkpoint_is_redone(tmp_path, fake_worker):
