@@ -1,4 +1,4 @@
-"""Five of the benchmarks under benchmarks/ run, each at its smallest size through its real entry point.
+"""Seven of the benchmarks under benchmarks/ run, each at its smallest size through its real entry point.
 
 They are not timed here (ratios are theirs to print); this only keeps them from rotting when the
 code they call changes (two had gone stale when the helpers they import gained a device). The
@@ -61,3 +61,14 @@ def test_kv_cache_prints_both_caches_the_ratio_and_that_they_agree():
     out = run("benchmarks/kv_cache.py", "--num-envs", "2", "--steps", "4", "--rounds", "2", "--threads", "1")
     assert "round 2/2 (bf16 first)" in out and "identical True" in out and "identical False" not in out
     assert "bf16 / fp32 KV cache median" in out
+
+
+@pytest.mark.sim
+def test_wave_threads_times_each_layout_against_the_first():
+    out = run("benchmarks/wave_threads.py", "--steps", "8", "--num-envs", "1", "--rounds", "1",
+              "--layouts", "1x1,2x1p")
+    assert "round 1/1: 1 x 1 " in out and "2 x 1 passive" in out
+    assert "1 x 1: " in out and "1.00x 1 x 1" in out and "x 1 passive: " in out
+    bad = subprocess.run([sys.executable, "benchmarks/wave_threads.py", "--layouts", "2by2"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "'2by2' is not PxT" in bad.stderr
