@@ -18,15 +18,18 @@ projected with the third camera's parameters).
 
 Measured (2026-12-04, 2-core AMD EPYC, ``--seeds 8``, IND, 128 replays per column, 4 min): 0.5 cm
 128/128, 1 cm 127/128, 2 cm 94/128 = 0.73 [0.65, 0.80]; one pixel is ~0.76 cm on the table. So a
-plan's outcome is fixed by the first frame to about a pixel (docs/RESULTS.md notebook).
+plan's outcome is fixed by the first frame to about a pixel (docs/RESULTS.md notebook). A seed-0 SFT
+policy's own closed-loop successes (``--artifacts``, 16 environments x 4 seeds): IND 0.80 / 0.63 /
+0.31 at 0.5 / 1 / 2 cm, OOD 0.91 / 0.87 / 0.51: a learned policy's open-loop sequences are far more
+sensitive than plans.
 
     PYTHONPATH=. .venv/bin/python scripts/outcome_sensitivity_probe.py [--seeds 6] [--deltas 0.5 1 2]
         [--directions 4] [--split ind] [--noise 0.0] [--tasks ...] [--out F.json]
-        [--artifacts COLLECT TOKENIZE TRAIN_WM SFT [--policy P] [--envs 16] [--steps 75]]
+        [--artifacts COLLECT TOKENIZE SFT [--policy P] [--envs 16] [--steps 75]]
 
-``--artifacts COLLECT TOKENIZE TRAIN_WM SFT`` replaces the demonstrations by a policy's own
+``--artifacts COLLECT TOKENIZE SFT`` replaces the demonstrations by a policy's own
 successes (``--policy``: a policy file, default the SFT policy): it acts closed loop in the simulator
-(deterministic, ``stages.common.sim_env.SimTaskEnv`` with the world model's frame skip, as the
+(deterministic, ``stages.common.sim_env.SimTaskEnv`` with the policy's frame skip, as the
 imagined-success check replays) on ``--envs`` environments of ``--split``, seeds 0..``--seeds``-1
 each, and the action sequences that succeed are replayed with the object moved, policy step by policy
 step, as the rl stage replays imagined ones.
@@ -79,32 +82,46 @@ def move_object(env, offset_m: tuple[float, float]) -> None:
     obj.set_angular_velocity(torch.zeros_like(p))
 
 
-def policy_sequences(args) -> list[dict]:
-    """The policy's closed-loop episodes in the simulator: {task, scene, seed, spec, actions, success}."""
-    import sys
+def policy_sequences(args):
+    """The policy's closed-loop episodes in the simulator, ({task, scene, seed, spec, actions, success}
+    per episode, the simulator)."""
+    import json as json_
 
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from policy_check import load_check
+    from stages.collect.catalog import read_scenes_json
+    from stages.collect.dataset import read_sim_facts
+    from stages.common.environments import pick_environments
+    from stages.common.sim_env import SimSpec, SimTaskEnv
+    from stages.goals.environments import list_environments
+    from stages.sft import TEXT_EMBEDDINGS, read_policy_json
+    from stages.sft.observation import ObservationFn
+    from stages.sft.policy import POLICY_FILE, act, load_policy
+    from stages.tokenize.tokenizer import load_tokenizer
 
-    from stages.sft.policy import POLICY_FILE, act
-
-    collect, tokenize, train_wm, sft = args.artifacts
-    check = load_check(collect, tokenize, train_wm, sft, args.policy or sft / POLICY_FILE, split=args.split,
-                       envs=args.envs, steps=args.steps)
+    collect, tokenize, sft = args.artifacts
+    info = read_policy_json(sft)  # frame_skip (= the world model's), tasks, observation layout
+    tok = load_tokenizer(tokenize, "cpu")
+    obs_fn = ObservationFn.for_policy(tok, json_.loads((sft / TEXT_EMBEDDINGS).read_text()), info)
+    scenes, facts = read_scenes_json(collect / "scenes.json"), read_sim_facts(collect)
+    picked = pick_environments([e for e in list_environments(collect)
+                                if e.split == args.split and e.task in info["tasks"]], args.envs)
+    specs = [SimSpec(e.task, scenes[e.scene_id].to_dict(), e.instruction) for e in picked]
+    sim = SimTaskEnv(specs, obs_fn, max_steps=args.steps, action_repeat=int(info["frame_skip"]),
+                     image_size=facts.image_size, robot_mesh=facts.robot_mesh)
+    policy = load_policy(args.policy or sft / POLICY_FILE, "cpu")
     out = []
-    for spec in check.specs:
+    for spec in specs:
         for seed in range(args.seeds):
-            obs, _ = check.sim.reset(seed=seed, options={"spec": spec})
+            obs, _ = sim.reset(seed=seed, options={"spec": spec})
             actions, success = [], False
             for _ in range(args.steps):
-                a = act(check.policy, {k: v[None] for k, v in obs.items()})[0]  # (7,)
-                obs, _, success, truncated, _ = check.sim.step(a)
+                a = act(policy, {k: v[None] for k, v in obs.items()})[0]  # (7,)
+                obs, _, success, truncated, _ = sim.step(a)
                 actions.append(a)
                 if success or truncated:
                     break
             out.append({"task": spec.task, "scene": spec.scene["scene_id"], "seed": seed, "spec": spec,
                         "actions": np.asarray(actions), "success": bool(success)})
-    return out, check.sim
+    return out, sim
 
 
 def replay_policy_moved(sim, spec, seed: int, actions: np.ndarray, offset_m: tuple[float, float]) -> bool:
@@ -188,7 +205,7 @@ def main() -> None:
     ap.add_argument("--split", default="ind", choices=["ind", "ood"])
     ap.add_argument("--noise", type=float, default=0.0)
     ap.add_argument("--tasks", nargs="+", default=list(TASKS), choices=list(TASKS), help="demonstrations of these tasks")
-    ap.add_argument("--artifacts", type=Path, nargs=4, default=None, metavar=("COLLECT", "TOKENIZE", "TRAIN_WM", "SFT"),
+    ap.add_argument("--artifacts", type=Path, nargs=3, default=None, metavar=("COLLECT", "TOKENIZE", "SFT"),
                     help="replay a policy's own successes instead of the demonstrations")
     ap.add_argument("--policy", type=Path, default=None, help="with --artifacts: a policy file (default SFT's)")
     ap.add_argument("--envs", type=int, default=16, help="with --artifacts: environments of --split")
