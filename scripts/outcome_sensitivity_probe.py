@@ -192,7 +192,7 @@ def policy_replays(args):
             actions[:, :6] = np.clip(actions[:, :6] + rng.normal(0, args.noise, actions[:, :6].shape), -1, 1)
         replay = (lambda off, spec=e["spec"], seed=e["seed"], actions=actions:
                   replay_policy_moved(sim, spec, seed, actions, off))
-        replay((0.0, 0.0))  # leaves the scene reset for the pixel scale
+        sim.reset(seed=e["seed"], options={"spec": e["spec"]})  # the episode's start, for the pixel scale
         yield {"task": e["task"], "scene": e["scene"], "seed": e["seed"]}, replay, pixel_cm(sim.env, None)
 
 
