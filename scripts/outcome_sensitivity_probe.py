@@ -19,8 +19,8 @@ projected with the third camera's parameters).
 Measured (2026-12-04, 2-core AMD EPYC, ``--seeds 8``, IND, 128 replays per column, 4 min): 0.5 cm
 128/128, 1 cm 127/128, 2 cm 94/128 = 0.73 [0.65, 0.80]; one pixel is ~0.76 cm on the table. So a
 plan's outcome is fixed by the first frame to about a pixel (docs/RESULTS.md notebook). A seed-0 SFT
-policy's own closed-loop successes (``--artifacts``, 16 environments x 4 seeds): IND 0.80 / 0.63 /
-0.31 at 0.5 / 1 / 2 cm, OOD 0.91 / 0.87 / 0.51: a learned policy's open-loop sequences are far more
+policy's own closed-loop successes (``--artifacts``, 16 environments x 4 seeds): IND 0.77 / 0.61 /
+0.30 at 0.5 / 1 / 2 cm, OOD 0.91 / 0.87 / 0.51: a learned policy's open-loop sequences are far more
 sensitive than plans.
 
     PYTHONPATH=. .venv/bin/python scripts/outcome_sensitivity_probe.py [--seeds 6] [--deltas 0.5 1 2]
