@@ -14,6 +14,10 @@ Outputs (in the artifact directory):
     recon.png      real vs reconstructed strips (held-out IND and OOD, both views)
     tensorboard/   the training curves (losses, learning rate) as TensorBoard event files
 
+Checkpoints (``ctx.checkpoints()``): ``tokenizer``, the training state, saved ``SAVES_PER_LOOP``
+    times during training and after its last step (``stages.common.training_state``); a run killed
+    mid-training resumes there and commits what an uninterrupted run commits (``seconds`` aside).
+
 Key includes:
     this config (architecture, loss weights, steps, seed) and the collect artifact's key. Device and
     worker count are not part of the key.
@@ -34,6 +38,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.context import StageContext
 from stages.common.curves import Curves
+from stages.common.training_state import save_every, training_checkpoint
 from stages.tokenize import train as training
 from stages.tokenize.model import ModelSpec, TokenizerNet
 from stages.tokenize.store import TOKENS, TokenStore, write_index
@@ -153,9 +158,10 @@ def run(ctx: StageContext) -> None:
     third, wrist = _load_frames(ds, train_eps, cfg.max_train_frames, rng)
     ctx.log.info("tokenize: training on %d frames of %s", len(third), third.shape[1:])
     net = TokenizerNet(cfg.spec())
+    resume, save = training_checkpoint(ctx.checkpoints(), "tokenizer")  # a killed run resumes at its last save
     with ctx.progress(cfg.steps, "tokenize train", unit="step") as bar, Curves(ctx.out) as curves:
         hist = training.train(net, third, wrist, cfg.settings(), seed=cfg.seed, device=ctx.device, progress=bar,
-                              log=ctx.log, curves=curves)
+                              log=ctx.log, curves=curves, resume=resume, save=save, save_every=save_every(cfg.steps))
     del third, wrist
     save_checkpoint(net.cpu(), ctx.out)
     net.to(ctx.device)

@@ -1,9 +1,11 @@
 """Training and evaluation of the tokenizer on in-memory uint8 frames of both views."""
 from __future__ import annotations
 
+import copy
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from typing import Callable
 
 import numpy as np
 import torch
@@ -70,11 +72,20 @@ def train(
     progress=None,
     log=None,
     curves=None,
+    resume: dict | None = None,
+    save: Callable[[dict], None] | None = None,
+    save_every: int = 0,
 ) -> TrainLog:
     """Train ``net`` in place on uint8 frames third/wrist (N, H, W, 3); returns the loss history.
 
     ``curves`` (``stages.common.curves.Curves``), when given, receives every history point as
     ``tokenizer/<loss>`` (and the learning rate) so the run can be watched in TensorBoard.
+
+    Resuming: with ``save``, every ``save_every`` steps and after the last one the loop hands ``save``
+    its whole state (weights, optimiser, the batch generator's and torch's RNG, the history, the
+    running sums, the curve points, seconds so far); a later call given that dict as ``resume``, on the
+    same frames and settings, continues from it and ends with the weights and history an uninterrupted
+    run has (tests/tokenize/test_resume.py). ``seconds`` counts the training time of every part.
     """
     if len(third) == 0:
         raise ValueError("tokenizer training got no frames: no IND training episodes in the collect artifact?")
@@ -84,8 +95,18 @@ def train(
     third_t, wrist_t = torch.from_numpy(third), torch.from_numpy(wrist)  # (N, H, W, 3) uint8, CPU
     hist = TrainLog(every=max(1, s.steps // 50))
     acc = {"recon": 0.0, "lpips": 0.0, "entropy": 0.0}
+    points: list[tuple[str, float, int]] = []  # (tag, value, step): the curves, rewritten after a resume
+    start, before = 0, 0.0
+    if resume is not None:
+        start, before, hist, acc, points = _restore(resume, net, opt, gen, len(third), s)
+        for tag, v, at in points if curves is not None else ():  # the killed run's curves left with its staging dir
+            curves.scalar(tag, v, at)
+        if progress is not None:
+            progress.resumed(start)
+        if log is not None:
+            log.info("tokenize resumed at step %d/%d from a checkpoint", start, s.steps)
     t0 = time.perf_counter()
-    for step in range(s.steps):
+    for step in range(start, s.steps):
         idx = torch.from_numpy(gen.integers(0, len(third), size=s.batch_size))
         obs = to_obs(third_t[idx].to(device), wrist_t[idx].to(device), net.spec.image_size)  # (B, 6, S, S)
         recon, q = net(obs)
@@ -109,21 +130,50 @@ def train(
         acc["entropy"] += q.entropy_loss.item()
         if (step + 1) % hist.every == 0 or step + 1 == s.steps:
             n = (step % hist.every) + 1
+            new = []
             for k in acc:
                 getattr(hist, k).append(acc[k] / n)
                 acc[k] = 0.0
-                if curves is not None:
-                    curves.scalar(f"tokenizer/{k}", getattr(hist, k)[-1], step + 1)
-            if curves is not None:
-                curves.scalar("tokenizer/lr", lr_at(step, s), step + 1)
+                new.append((f"tokenizer/{k}", getattr(hist, k)[-1], step + 1))
+            new.append(("tokenizer/lr", lr_at(step, s), step + 1))
+            points += new
+            for tag, v, at in new if curves is not None else ():
+                curves.scalar(tag, v, at)
             if log is not None and len(hist.recon) % 10 == 0:
                 log.info("tokenize step %d/%d recon %.4f lpips %.4f entropy %.3f", step + 1, s.steps, hist.recon[-1], hist.lpips[-1], hist.entropy[-1])
         if progress is not None:
             progress.update(1)
             progress.postfix(recon=f"{rec.item():.4f}", lpips=f"{lp.item():.3f}")
-    hist.seconds = time.perf_counter() - t0
+        if save is not None and (step + 1 == s.steps or (save_every > 0 and (step + 1) % save_every == 0)):
+            hist.seconds = before + time.perf_counter() - t0
+            save(_state(step + 1, hist, acc, points, net, opt, gen, len(third), s))
+    hist.seconds = before + time.perf_counter() - t0
     net.eval()
     return hist
+
+
+def _state(step: int, hist: TrainLog, acc: dict, points: list, net: TokenizerNet, opt, gen: np.random.Generator,
+           frames: int, s: TrainSettings) -> dict:
+    """Everything the loop's remaining steps depend on after ``step`` steps, as copies the later steps
+    leave alone; ``frames`` and the settings are kept to refuse a resume on other data."""
+    return {"step": step, "hist": asdict(hist), "acc": dict(acc), "points": list(points),
+            "net": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
+            "opt": copy.deepcopy(opt.state_dict()), "gen": copy.deepcopy(gen.bit_generator.state),
+            "torch_rng": torch.get_rng_state(), "frames": frames, "settings": asdict(s)}
+
+
+def _restore(state: dict, net: TokenizerNet, opt, gen: np.random.Generator, frames: int, s: TrainSettings) -> tuple:
+    """Load ``state`` (from ``_state``) into the loop's objects; (step, seconds, hist, acc, points)."""
+    if state["frames"] != frames or state["settings"] != asdict(s):
+        raise ValueError(f"tokenize checkpoint from training on {state['frames']} frames with {state['settings']}, "
+                         f"this run trains on {frames} frames with {asdict(s)}: not the same run; "
+                         "remove the store's partial/tokenize/<key> directory or run with --force")
+    net.load_state_dict(state["net"])
+    opt.load_state_dict(state["opt"])
+    gen.bit_generator.state = state["gen"]
+    torch.set_rng_state(state["torch_rng"])
+    hist = TrainLog(**state["hist"])
+    return state["step"], hist.seconds, hist, dict(state["acc"]), list(state["points"])
 
 
 @torch.no_grad()

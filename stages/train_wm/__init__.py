@@ -27,8 +27,9 @@ Outputs (in the artifact directory):
     tensorboard/               training curves (both world models' losses, the proprioception head's)
 
 Checkpoints (``ctx.checkpoints()``): ``action_wm`` and ``text_wm``, each model's training state,
-    saved ``CHECKPOINTS_PER_MODEL`` times during its training and after its last step; a run killed
-    mid-training resumes there and commits what an uninterrupted run commits (``seconds`` aside).
+    saved ``SAVES_PER_LOOP`` times during its training and after its last step
+    (``stages.common.training_state``); a run killed mid-training resumes there and commits what an
+    uninterrupted run commits (``seconds`` aside).
 
 Key includes:
     this config (architecture, optimisation, decoding, evaluation sizes, seed) and the keys of the
@@ -42,7 +43,7 @@ from __future__ import annotations
 
 import json
 import time
-from typing import Callable, Literal
+from typing import Literal
 
 import numpy as np
 import torch
@@ -57,6 +58,7 @@ from stages.train_wm.figure import frame_strips
 from stages.train_wm.model import WMSpec, WorldModelNet
 from stages.train_wm.rollout import CHECKPOINTS, TEXT_EMBEDDINGS, WorldModel, save_world_model
 from stages.common.curves import Curves
+from stages.common.training_state import save_every, training_checkpoint
 from stages.train_wm.train import train_world_model
 
 
@@ -133,22 +135,6 @@ def training_episodes(episodes: list, kind: str, done_negatives: bool) -> list:
     return [e for e in episodes if e.kind not in FAILURE_KINDS]
 
 
-# training state saved this many times per world model (every 250 of the small profile's 3,000 action
-# steps, ~3-4 min on 2 CPU cores): a killed run loses at most that much
-CHECKPOINTS_PER_MODEL = 12
-
-
-def training_checkpoint(checkpoints, name: str) -> tuple[dict | None, Callable[[dict], None]]:
-    """(the training state saved under checkpoint ``name`` by an earlier run of this key, or None;
-    a function saving a new state there) for ``train_world_model``'s ``resume`` and ``save``."""
-    def save(state: dict) -> None:
-        with checkpoints.save(name) as d:
-            torch.save(state, d / "state.pt")
-
-    found = checkpoints.load(name)
-    return (torch.load(found / "state.pt", weights_only=False) if found is not None else None), save
-
-
 def run(ctx) -> None:
     from stages.collect.dataset import Dataset
     from stages.common.text_encoder import encode_texts
@@ -200,7 +186,7 @@ def run(ctx) -> None:
                                        changed_weight=cfg.changed_weight, done_balance=cfg.done_balance,
                                        context_noise=cfg.context_noise, self_context=cfg.self_context, progress=bar,
                                        log=ctx.log, desc=f"{kind}_wm", curves=curves, resume=resume, save=save,
-                                       save_every=max(1, steps // CHECKPOINTS_PER_MODEL))
+                                       save_every=save_every(steps))
         save_world_model(net, ctx.out / CHECKPOINTS[kind],
                          {"decode_steps": cfg.decode_steps, "temperature": cfg.temperature})
         models[kind] = WorldModel(net, cfg.decode_steps, cfg.temperature, {k: v.tolist() for k, v in text_emb.items()})

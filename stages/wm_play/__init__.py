@@ -102,7 +102,7 @@ def _play_and_finetune(ctx, cfg: Config) -> dict:
     from stages.sft.observation import ObservationFn
     from stages.sft.policy import POLICY_FILE, load_policy
     from stages.tokenize.tokenizer import load_tokenizer
-    from stages.train_wm import CHECKPOINTS_PER_MODEL, training_checkpoint
+    from stages.common.training_state import save_every, training_checkpoint
     from stages.train_wm.data import load_episodes
     from stages.train_wm.rollout import CHECKPOINTS, TEXT_EMBEDDINGS, load_world_model, save_world_model
     from stages.wm_play.play import PLAY_SEED, finetune_on_play, load_play, play_episodes, save_play
@@ -152,7 +152,7 @@ def _play_and_finetune(ctx, cfg: Config) -> dict:
     with ctx.progress(cfg.steps, "wm_play: world model on the play", unit="step") as bar:
         tuned, result = finetune_on_play(wm, wm_dir, train_eps, play, steps=cfg.steps, lr=cfg.lr, weight=cfg.weight,
                                          device=ctx.device, progress=bar, log=ctx.log, resume=resume, save=save,
-                                         save_every=max(1, cfg.steps // CHECKPOINTS_PER_MODEL))
+                                         save_every=save_every(cfg.steps))
     save_world_model(tuned.net, ctx.out / CHECKPOINTS["action"],
                      {"decode_steps": tuned.decode_steps, "temperature": tuned.temperature})
     out = {"episodes": len(play), "successes": sum(r["success"] for r in rows),
