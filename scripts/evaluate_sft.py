@@ -11,8 +11,10 @@ Prints success per (task, split) and pooled, with Wilson 95% intervals, and writ
 results next to nothing else (``--out results.jsonl`` to keep them). With ``--out F`` every finished
 job's episodes are appended to ``F.partial`` at once, and the same command after a kill runs only the
 jobs that file lacks (it says how many it kept); ``F`` is written when every job is done and the
-partial file is removed. A worker reuses its simulator across jobs, so a resumed run's jobs meet the
-simulator in another order than an uninterrupted run's would. ``--strips DIR`` also saves,
+partial file is removed. A worker reuses its simulator across jobs, but every reset rebuilds the
+scene (``stages.common.sim_env``), so a resumed run's episodes are those an uninterrupted run gives
+(before 2026-12-05 they could differ: an episode depended on what its worker simulated before it).
+``--strips DIR`` also saves,
 for the first episode of each (task, split), a strip of 8 third-view frames from start to end
 (``DIR/<split>_<task>_<success|fail>.png``): look at what the policy does before believing a rate.
 """

@@ -26,7 +26,8 @@ def _sim(task: str, image_size: int, robot_mesh: str, max_steps: int):
     if key not in _SIMS:
         from stages.collect.envs import DEFAULT_SCENE
 
-        env = make_raw_env(task, DEFAULT_SCENE, image_size=image_size, robot_mesh=robot_mesh)
+        env = make_raw_env(task, DEFAULT_SCENE, image_size=image_size, robot_mesh=robot_mesh,
+                           reconfiguration_freq=1)  # each reset rebuilds the scene: episodes do not depend on earlier ones
         _SIMS[key] = (env, PlanRunner(env, max_steps), {"scene_id": None})
     env, runner, state = _SIMS[key]
     runner.max_steps = max_steps

@@ -11,6 +11,15 @@ last). With ``payout_gamma`` set, a successful step is paid the rule reward's ma
 itself and each step left (``stages.common.returns.success_return``). Each env samples one of its
 assigned (task, scene) environments at reset; simulator instances are created lazily and cached
 (building one costs seconds), at most ``cache_size`` per env.
+
+Every reset rebuilds the env's scene (ManiSkill's ``reconfiguration_freq=1``, ~0.18 s on a 2-core
+EPYC), so an episode does not depend on what the simulator ran before it. Resetting the poses and
+velocities in a scene that has already simulated is not enough: the physics engine keeps state
+across a reset (its contacts, measured not examined), and the same actions from the same seed then
+went elsewhere after other episodes (6.5 cm apart on a scripted push, 3 cm on a noisy pick-and-place
+plan; 4 of 24 noisy plans diverged, docs/RESULTS.md notebook, 2026-12-05). With the rebuild an
+episode's trajectory is the same bit for bit whatever ran before it, so evaluation's outcomes do not
+depend on how its jobs were spread over workers or resumed (``tests/common/test_sim_history.py``).
 """
 from __future__ import annotations
 
@@ -123,7 +132,8 @@ class SimTaskEnv(gym.Env):
             _, old = self._envs.popitem(last=False)
             old.close()
         freeze_heap_once()
-        env = make_task_env(spec.task, spec.scene, image_size=self.image_size, robot_mesh=self.robot_mesh)
+        env = make_task_env(spec.task, spec.scene, image_size=self.image_size, robot_mesh=self.robot_mesh,
+                            reconfiguration_freq=1)  # every reset rebuilds the physics scene: see the module docstring
         keep_renderer(env)
         self._envs[spec.key] = env
         return env
