@@ -12,10 +12,11 @@ itself and each step left (``stages.common.returns.success_return``). Each env s
 assigned (task, scene) environments at reset; simulator instances are created lazily and cached
 (building one costs seconds), at most ``cache_size`` per env.
 
-Every reset rebuilds the env's scene (ManiSkill's ``reconfiguration_freq=1``, ~0.18 s on a 2-core
-EPYC), so an episode does not depend on what the simulator ran before it. Resetting the poses and
-velocities in a scene that has already simulated is not enough: the physics engine keeps state
-across a reset (its contacts, measured not examined), and the same actions from the same seed then
+Every reset rebuilds the env's scene (ManiSkill's ``reconfiguration_freq=1``; ~0.1 s a reset in the
+toy evaluation's process on a 2-core EPYC, ~3% of a 75-step episode), so an episode does not depend
+on what the simulator ran before it. Resetting the poses and velocities in a scene that has already
+simulated is not enough: the physics engine keeps state across such a reset (which state was not
+examined), and the same actions from the same seed then
 went elsewhere after other episodes (6.5 cm apart on a scripted push, 3 cm on a noisy pick-and-place
 plan; 4 of 24 noisy plans diverged, docs/RESULTS.md notebook, 2026-12-05). With the rebuild an
 episode's trajectory is the same bit for bit whatever ran before it, so evaluation's outcomes do not
@@ -79,13 +80,19 @@ def freeze_heap_once() -> None:
     0.26 s (toy evaluate, cProfile: 64 calls, 16.3 s of its 60 s). Frozen objects are skipped by
     later collections (those calls then took 0.09 s); objects made later are collected as before,
     and frozen ones are still freed when their reference count drops to zero: only cyclic garbage
-    among what was alive at the freeze stays.
+    among what was alive at the freeze stays. ManiSkill's and SAPIEN's modules are imported before
+    the freeze (2026-12-05: imported after it, they were most of what each collection walked; in the
+    toy evaluation's process, cProfile, a collection took 64 ms with them unfrozen and 1.6 ms frozen,
+    and a reset with its scene rebuild 197 ms -> 103 ms).
     """
     global _FROZEN
     if _FROZEN:
         return
     import gc
 
+    from stages.collect.sim import _import_envs
+
+    _import_envs()  # ManiSkill's and SAPIEN's modules: imported after the freeze, every collection walked them
     gc.collect()
     gc.freeze()
     _FROZEN = True
