@@ -12,13 +12,14 @@ itself and each step left (``stages.common.returns.success_return``). Each env s
 assigned (task, scene) environments at reset; simulator instances are created lazily and cached
 (building one costs seconds), at most ``cache_size`` per env.
 
-Every reset rebuilds the env's scene (ManiSkill's ``reconfiguration_freq=1``; ~0.1 s a reset in the
-toy evaluation's process on a 2-core EPYC, ~3% of a 75-step episode), so an episode does not depend
-on what the simulator ran before it. Resetting the poses and velocities in a scene that has already
-simulated is not enough: the physics engine keeps state across such a reset (which state was not
-examined), and the same actions from the same seed then
-went elsewhere after other episodes (6.5 cm apart on a scripted push, 3 cm on a noisy pick-and-place
-plan; 4 of 24 noisy plans diverged, docs/RESULTS.md notebook, 2026-12-05). With the rebuild an
+Every reset rebuilds the env's scene (ManiSkill's ``reconfiguration_freq=1``), so an episode does not
+depend on what the simulator ran before it. Resetting the poses and velocities in a scene that has
+already simulated is not enough: the physics engine keeps state across such a reset (which state was
+not examined), and the same actions from the same seed then went elsewhere after other episodes
+(6.5 cm apart on a scripted push, 3 cm on a noisy pick-and-place plan; 4 of 24 noisy plans diverged;
+docs/RESULTS.md notebook, 2026-12-05). With ``freeze_heap_once`` the rebuild costs no measurable time:
+``reset`` took 72-101 ms a call with it and 76-85 ms without (8 toy evaluation episodes under
+cProfile, twice each, 2-core EPYC; docs/evaluate.md). With the rebuild an
 episode's trajectory is the same bit for bit whatever ran before it, so evaluation's outcomes do not
 depend on how its jobs were spread over workers or resumed (``tests/common/test_sim_history.py``).
 """
