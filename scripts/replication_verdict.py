@@ -18,7 +18,9 @@ Decision: target 2 by PPO is met only if prediction 1's interval lies above 0 ov
 It reads the seeds whose three policies (`sft`, the `wm` arm, `rule`) have finished files in both splits;
 with fewer than six, the predictions are read on those seeds and the decision is "pending". The tag
 defaults to the store's (as `fresh_state_sweep.py` names its files); precision is read from the
-replication's rl artifacts that the store holds (none: "not measured yet").
+replication's rl artifacts that the store holds (none: "not measured yet"), and only when the files'
+tag is the store's: with `--tag` naming another build (say, committed files read on a fresh machine),
+that store's policies are not the files' and precision is left out.
 """
 from __future__ import annotations
 
@@ -148,16 +150,23 @@ def main() -> None:
     ap.add_argument("--store", type=Path, default=None, help="store directory (default: the spec's)")
     ap.add_argument("--folder", type=Path, default=FRESH)
     args = ap.parse_args()
-    tag, precisions = store_facts(args.store)
-    tag = args.tag or tag
+    own_tag, precisions = store_facts(args.store)
+    tag = args.tag or own_tag
+    if tag != own_tag:  # the files come from another build of the store: its rl artifacts are not theirs
+        print(f"precision not read: the store's tag is {own_tag}, the files' {tag}")
+        precisions = {}
     wm_sft, rule_sft, wm_rule, seeds, wm = differences(args.folder, tag)
     print(f"replication, tag {tag}: world-model arm {wm or '(no files yet)'}; seeds with every file: "
           f"{', '.join(map(str, seeds)) or 'none'} of {', '.join(map(str, SEEDS))}")
+    if 0 < len(seeds) < len(SEEDS):
+        print(f"  (predictions 1-3 read on {len(seeds)} of {len(SEEDS)} seeds: 'so far', not the pre-registered reading)")
     for r in judge(wm_sft, rule_sft, wm_rule, precisions, seeds):
         verdict = {True: "holds", False: "FAILS", None: "open"}[r.holds]
+        if r.name in "123" and r.holds is not None and len(seeds) < len(SEEDS):
+            verdict += " so far"
         if r.name == "decision":
             verdict = {True: "MET", False: "NOT MET", None: "pending"}[r.holds]
-        print(f"  {r.name:>8}  {verdict:<8} predicted: {r.predicted}; measured: {r.measured}")
+        print(f"  {r.name:>8}  {verdict:<14} predicted: {r.predicted}; measured: {r.measured}")
 
 
 if __name__ == "__main__":

@@ -45,10 +45,11 @@ def test_six_seeds_of_a_winning_wm_arm_meet_the_decision_and_fail_predictions_1_
     _files(tmp_path, range(6), {0, 1, 2, 3})   # wm OOD: 4 of 4, SFT 1 of 4, rule 2 of 4
     out = _run(tmp_path, tmp_path / "store")
     assert "world-model arm replication-wm_gated; seeds with every file: 0, 1, 2, 3, 4, 5" in out
-    assert "FAILS" in _line(out, "1") and "+0.750 [" in _line(out, "1")           # +0.75, far above +0.03
+    assert "FAILS " in _line(out, "1") and "so far" not in out and "+0.750 [" in _line(out, "1")           # +0.75, far above +0.03
     assert "holds" in _line(out, "2") and "+0.750 [" in _line(out, "2")           # rule 4/4 vs SFT 1/4 IND
     assert "FAILS" in _line(out, "3") and "+0.500 [" in _line(out, "3")           # wm 4/4 vs rule 2/4 OOD
     assert "open" in _line(out, "4")                                               # an empty store: no precision
+    assert "precision not read: the store's tag is c" in out                      # --tag t is another build's
     assert "MET" in _line(out, "decision") and "NOT MET" not in _line(out, "decision")
 
 
@@ -58,6 +59,7 @@ def test_missing_seeds_leave_the_decision_pending(tmp_path):
     out = _run(tmp_path, tmp_path / "store")
     assert "seeds with every file: 0, 1, 2 of" in out
     assert "pending: 3 of 6 seeds" in _line(out, "decision")
+    assert "FAILS so far" in _line(out, "1")                                       # +0.75 on three seeds
 
 
 def test_predictions_as_written():
