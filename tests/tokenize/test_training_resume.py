@@ -102,3 +102,40 @@ def test_the_stage_killed_mid_training_resumes_and_commits_what_an_uninterrupted
     ref_m, res_m = (json.loads((d / "metrics.json").read_text()) for d in (reference, resumed))
     differ = sorted(k for k in ref_m if ref_m[k] != res_m.get(k) and "second" not in k)  # timings aside
     assert not differ, differ
+
+
+def test_the_stage_killed_mid_encoding_encodes_only_the_chunks_it_had_not_saved(tmp_path, monkeypatch):
+    from stages.tokenize.tokenizer import Tokenizer
+
+    write_collect_artifact(tmp_path / "collect", FakeDataset(n_ind=5, n_ood=2, T=6, size=64))
+    monkeypatch.setattr(tokenize, "ENCODE_CHUNK", 2)  # 7 episodes: chunks of 2, 2, 2, 1
+    reference = _stage(tmp_path, "reference")
+
+    partial = tmp_path / "partial"
+    real_save, real_encode = Checkpoints.save, Tokenizer.encode
+
+    def save_then_kill(self, name):  # killed while encoding the third chunk, after two were saved
+        if name == "encode-2":
+            raise Killed(name)
+        return real_save(self, name)
+
+    monkeypatch.setattr(Checkpoints, "save", save_then_kill)
+    with pytest.raises(Killed):
+        _stage(tmp_path, "killed", partial)
+    monkeypatch.setattr(Checkpoints, "save", real_save)
+    assert Checkpoints(partial).names() == ["encode-0", "encode-1", "tokenizer"]
+
+    encoded = []  # frames per Tokenizer.encode call; the metrics' frames do not go through it
+    monkeypatch.setattr(Tokenizer, "encode", lambda self, third, *a, **k: encoded.append(len(third)) or real_encode(self, third, *a, **k))
+    resumed = _stage(tmp_path, "resumed", partial)
+    assert len(encoded) == 3, encoded  # episodes 4, 5 and 6; the first four were read back
+    assert np.array_equal(np.load(reference / "tokens.npy"), np.load(resumed / "tokens.npy"))
+    assert (reference / "index.json").read_text() == (resumed / "index.json").read_text()
+    ref_m, res_m = (json.loads((d / "metrics.json").read_text()) for d in (reference, resumed))
+    assert {k: v for k, v in ref_m.items() if k.startswith("all/")} == {k: v for k, v in res_m.items() if k.startswith("all/")}
+
+    np.save(partial / "encode-0" / "tokens.npy", np.zeros((1, 1, 1), np.uint16))  # damaged: its digest no longer matches
+    encoded.clear()
+    again = _stage(tmp_path, "again", partial)
+    assert len(encoded) == 2, encoded  # that chunk alone is encoded again
+    assert np.array_equal(np.load(reference / "tokens.npy"), np.load(again / "tokens.npy"))
