@@ -18,7 +18,9 @@ compared policy's success rate per split and task, seeds pooled, and over all ta
 Wilson interval (unpaired: the differences are in the tables above).
 
 File names: ``<stem>_s<seed>_<tag>_<date>.jsonl`` in domain, ``<stem>_ood_s<seed>_<tag>_<date>.jsonl``
-out of domain; each (stem, seed, split) must match exactly one file.
+out of domain; each (stem, seed, split) must match exactly one file. A comparison's ``tag`` is one
+string, or a list of one tag per seed when its seeds ran on several builds of the store (each seed is
+still paired within its own build).
 """
 from __future__ import annotations
 
@@ -46,8 +48,12 @@ class Comparison:
     stem: str       # file stem of the compared policy's episodes
     baseline: str   # file stem of the episodes it is paired with (e.g. "sft")
     seeds: tuple[int, ...]
-    tag: str        # the machine/store tag in the file names (e.g. "epyc")
+    tag: str | tuple[str, ...]  # the machine/store tag in the file names (e.g. "epyc"), or one per seed
     splits: tuple[str, ...] = SPLITS
+
+    def tag_of(self, seed: int) -> str:
+        """The tag of ``seed``'s files (a sweep whose seeds ran on several builds of the store names one per seed)."""
+        return self.tag if isinstance(self.tag, str) else self.tag[self.seeds.index(seed)]
 
 
 def load_manifest(path: Path) -> list[Comparison]:
@@ -70,7 +76,15 @@ def load_manifest(path: Path) -> list[Comparison]:
         splits = tuple(entry.get("splits", SPLITS))
         if not splits or not set(splits) <= set(SPLITS):
             raise SystemExit(f"{path}: comparison {i} ({entry['label']!r}): splits {list(splits)} not a subset of {list(SPLITS)}")
-        out.append(Comparison(entry["label"], entry["stem"], entry["baseline"], tuple(seeds), entry["tag"], splits))
+        tag = entry["tag"]
+        if isinstance(tag, list):
+            if len(tag) != len(seeds) or not all(isinstance(t, str) and t for t in tag):
+                raise SystemExit(f"{path}: comparison {i} ({entry['label']!r}): tag is a list, so it needs one "
+                                 f"non-empty tag per seed ({len(seeds)}), got {tag}")
+            tag = tuple(tag)
+        elif not isinstance(tag, str) or not tag:
+            raise SystemExit(f"{path}: comparison {i} ({entry['label']!r}): tag must be a non-empty string or a list of one per seed")
+        out.append(Comparison(entry["label"], entry["stem"], entry["baseline"], tuple(seeds), tag, splits))
     return out
 
 
@@ -109,8 +123,8 @@ def compare(c: Comparison, folder: Path, tasks: frozenset[str] | None = None) ->
     for split in c.splits:
         pooled, per_seed = [], []
         for seed in c.seeds:
-            method = episodes(episodes_file(folder, c.stem, seed, split, c.tag))
-            base = episodes(episodes_file(folder, c.baseline, seed, split, c.tag))
+            method = episodes(episodes_file(folder, c.stem, seed, split, c.tag_of(seed)))
+            base = episodes(episodes_file(folder, c.baseline, seed, split, c.tag_of(seed)))
             pairs = [(r, b) for r, b in pair_up(method, base)
                      if r["split"] == split and (tasks is None or r["task"] in tasks)]
             if not pairs:
@@ -148,7 +162,7 @@ def task_groups(comparisons: list[Comparison], folder: Path, groups: list[str]) 
     for c in comparisons:
         for seed in c.seeds:
             for split in c.splits:
-                for r in episodes(episodes_file(folder, c.stem, seed, split, c.tag)):
+                for r in episodes(episodes_file(folder, c.stem, seed, split, c.tag_of(seed))):
                     seen.setdefault(r["task"], None)
     out = [(t, frozenset({t})) for t in seen]
     for g in groups:
@@ -186,7 +200,7 @@ def rates(comparisons: list[Comparison], folder: Path) -> list[tuple[str, tuple[
             counts: dict[tuple[str, str], list[int]] = {}
             for seed in c.seeds:
                 for split in c.splits:
-                    for r in episodes(episodes_file(folder, stem, seed, split, c.tag)):
+                    for r in episodes(episodes_file(folder, stem, seed, split, c.tag_of(seed))):
                         for cell in ((split, r["task"]), (split, "all")):
                             k = counts.setdefault(cell, [0, 0])
                             k[0] += bool(r["success"])

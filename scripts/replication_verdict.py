@@ -13,14 +13,17 @@ them as code, so the reading cannot drift towards the result:
 4. Imagined-success precision (the rl stage's `imagined/<split>/precision`) below 0.5 at every point.
 Decision: target 2 by PPO is met only if prediction 1's interval lies above 0 over all six seeds.
 
-    PYTHONPATH=. .venv/bin/python scripts/replication_verdict.py [--tag TAG] [--store DIR] [--folder F]
+    PYTHONPATH=. .venv/bin/python scripts/replication_verdict.py [--store DIR] [--folder F]
 
 It reads the seeds whose three policies (`sft`, the `wm` arm, `rule`) have finished files in both splits;
-with fewer than six, the predictions are read on those seeds and the decision is "pending". The tag
-defaults to the store's (as `fresh_state_sweep.py` names its files); precision is read from the
-replication's rl artifacts that the store holds (none: "not measured yet"), and only when the files'
-tag is the store's: with `--tag` naming another build (say, committed files read on a fresh machine),
-that store's policies are not the files' and precision is left out.
+with fewer than six, the predictions are read on those seeds and the decision is "pending". The store
+did not outlive its machine, so the seeds may come from several builds of it (the amendment in
+docs/RESULTS.md, "Target 2's replication survives a new machine", written down before any seed of
+a second build was read): each seed counts with the files of one build (its tag in the file names; the
+build it finished on first), paired within that build, and the pooled reading spans the builds.
+Precision is recorded in ``replication_precision.json`` beside the episode files, so it outlives the
+store: each run merges in the points of the replication's rl artifacts the store holds (tagged with
+the store's build), and prediction 4 is read over every recorded point.
 """
 from __future__ import annotations
 
@@ -43,6 +46,8 @@ SEEDS = (0, 1, 2, 3, 4, 5)   # the pre-registered seeds
 RULE = f"{SWEEP}-rule"
 P1_RANGE = (-0.02, 0.03)     # prediction 1's point estimate
 PRECISION_BELOW = 0.5        # prediction 4
+PRECISION_FILE = "replication_precision.json"  # beside the episode files: precision outlives the store
+FILE = re.compile(rf"^(?P<stem>{SWEEP}-.+?)(_ood)?_s\d+_(?P<tag>[^_]+)_[^_]+\.jsonl$")  # a replication episode file
 
 
 @dataclass(frozen=True)
@@ -93,35 +98,53 @@ def judge(wm_sft_ood: dict | None, rule_sft_ind: dict | None, wm_rule_ood: dict 
     return out
 
 
-def wm_stem(folder: Path, tag: str) -> str | None:
-    """The world-model arm's stem: the one `replication-*` stem in the tag's files other than `rule`'s."""
-    name = re.compile(rf"^(?P<stem>{SWEEP}-.+?)(_ood)?_s\d+_{re.escape(tag)}_[^_]+\.jsonl$")
-    stems = {m["stem"] for p in folder.iterdir() if (m := name.match(p.name))} - {RULE}
+def wm_stem(folder: Path) -> str | None:
+    """The world-model arm's stem: the one `replication-*` stem in the files other than `rule`'s."""
+    stems = {m["stem"] for p in folder.iterdir() if (m := FILE.match(p.name))} - {RULE}
     if len(stems) > 1:
-        raise SystemExit(f"{folder}: several world-model arms for tag {tag!r}: {sorted(stems)}")
+        raise SystemExit(f"{folder}: several world-model arms: {sorted(stems)}")
     return next(iter(stems), None)
 
 
-def finished_seeds(folder: Path, stems: tuple[str, ...], tag: str) -> tuple[int, ...]:
-    """The pre-registered seeds whose files of every stem exist in both splits."""
-    return tuple(s for s in SEEDS if all(len(dated(folder, file_prefix(stem, s, split, tag))) == 1
-                                        for stem in stems for split in ("ind", "ood")))
+def seed_tags(folder: Path, stems: tuple[str, ...]) -> dict[int, str]:
+    """Each pre-registered seed whose files of every stem exist in both splits under one store's tag: that
+    tag. A seed finished on several builds counts on the one it finished on first (the latest date of
+    its files); two builds finished on the same day are refused by name."""
+    tags = sorted({m["tag"] for p in folder.iterdir() if (m := FILE.match(p.name))})
+    out = {}
+    for seed in SEEDS:
+        done = []
+        for tag in tags:
+            files = [dated(folder, file_prefix(stem, seed, split, tag)) for stem in stems for split in ("ind", "ood")]
+            if all(len(f) == 1 for f in files):
+                done.append((max(f[0].name.rsplit("_", 1)[1] for f in files), tag))
+        done.sort()
+        if len(done) > 1 and done[0][0] == done[1][0]:
+            raise SystemExit(f"{folder}: seed {seed} finished on two builds of the store the same day "
+                             f"({done[0][1]}, {done[1][1]}): keep one build's files")
+        if done:
+            out[seed] = done[0][1]
+    return out
 
 
-def differences(folder: Path, tag: str) -> tuple[dict | None, dict | None, dict | None, tuple[int, ...], str | None]:
-    """Pooled paired differences (wm - SFT OOD, rule - SFT IND, wm - rule OOD) over the finished seeds."""
-    wm = wm_stem(folder, tag)
+def differences(folder: Path) -> tuple[dict | None, dict | None, dict | None, dict[int, str], str | None]:
+    """Pooled paired differences (wm - SFT OOD, rule - SFT IND, wm - rule OOD) over the finished seeds, each
+    seed paired within its own build's files; and the seeds' tags."""
+    wm = wm_stem(folder)
     if wm is None:
-        return None, None, None, (), None
-    seeds = finished_seeds(folder, (wm, RULE, "sft"), tag)
-    if not seeds:
-        return None, None, None, (), wm
-    pooled = lambda stem, base, split: compare(Comparison(stem, stem, base, seeds, tag, (split,)), folder)[split]["pooled"]  # noqa: E731
-    return pooled(wm, "sft", "ood"), pooled(RULE, "sft", "ind"), pooled(wm, RULE, "ood"), seeds, wm
+        return None, None, None, {}, None
+    tags = seed_tags(folder, (wm, RULE, "sft"))
+    if not tags:
+        return None, None, None, {}, wm
+    seeds = tuple(sorted(tags))
+    per_seed = tuple(tags[s] for s in seeds)
+    pooled = lambda stem, base, split: compare(Comparison(stem, stem, base, seeds, per_seed, (split,)), folder)[split]["pooled"]  # noqa: E731
+    return pooled(wm, "sft", "ood"), pooled(RULE, "sft", "ind"), pooled(wm, RULE, "ood"), tags, wm
 
 
-def store_facts(store: Path | None) -> tuple[str, dict[str, float | None]]:
-    """The store's tag and the precision of every replication rl artifact it holds, by "<stem> s<seed> <split>"."""
+def store_points(store: Path | None) -> tuple[str, list[dict]]:
+    """The store's tag and the imagined-success precision of every replication rl artifact it holds, one
+    point per (policy, split): {tag, stem, seed, split, precision, imagined_done, imagined_and_replayed}."""
     from fresh_state_sweep import policies, store_tag
 
     from pipeline.errors import PipelineError
@@ -134,30 +157,45 @@ def store_facts(store: Path | None) -> tuple[str, dict[str, float | None]]:
     except PipelineError as e:
         raise SystemExit(f"error: {e}") from None
     pols, _, collect_key = policies(project, SWEEP, points)
-    precisions = {}
+    tag = store_tag(project.store, collect_key)
+    out = []
     for pol in pols:
         if pol.rl is None:
             continue
         metrics = json.loads((pol.rl / "metrics.json").read_text())
         for split in ("ind", "ood"):
-            precisions[f"{pol.stem} s{pol.seed} {split}"] = metrics.get(f"imagined/{split}/precision")
-    return store_tag(project.store, collect_key), precisions
+            out.append({"tag": tag, "stem": pol.stem, "seed": pol.seed, "split": split,
+                        **{k: metrics.get(f"imagined/{split}/{k}") for k in ("precision", "imagined_done", "imagined_and_replayed")}})
+    return tag, out
+
+
+def record(folder: Path, points: list[dict]) -> list[dict]:
+    """Every point of ``folder``'s precision file with ``points`` merged in (a point of the same tag, stem,
+    seed and split replaced); the file is rewritten when that changes it. The file keeps precision once
+    the store that measured it is gone, as the episode files keep success."""
+    path = folder / PRECISION_FILE
+    known = json.loads(path.read_text())["points"] if path.is_file() else []
+    ident = lambda p: (p["tag"], p["stem"], p["seed"], p["split"])  # noqa: E731
+    merged = {ident(p): p for p in known}
+    merged.update({ident(p): p for p in points})
+    out = sorted(merged.values(), key=ident)
+    if out != known:
+        path.write_text(json.dumps({"points": out}, indent=1) + "\n")
+    return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--tag", default=None, help="the files' store tag (default: the store's, as fresh_state_sweep.py)")
     ap.add_argument("--store", type=Path, default=None, help="store directory (default: the spec's)")
     ap.add_argument("--folder", type=Path, default=FRESH)
     args = ap.parse_args()
-    own_tag, precisions = store_facts(args.store)
-    tag = args.tag or own_tag
-    if tag != own_tag:  # the files come from another build of the store: its rl artifacts are not theirs
-        print(f"precision not read: the store's tag is {own_tag}, the files' {tag}")
-        precisions = {}
-    wm_sft, rule_sft, wm_rule, seeds, wm = differences(args.folder, tag)
-    print(f"replication, tag {tag}: world-model arm {wm or '(no files yet)'}; seeds with every file: "
-          f"{', '.join(map(str, seeds)) or 'none'} of {', '.join(map(str, SEEDS))}")
+    own_tag, points = store_points(args.store)
+    points = record(args.folder, points)
+    precisions = {f"{p['stem']} s{p['seed']} {p['tag']} {p['split']}": p["precision"] for p in points}
+    wm_sft, rule_sft, wm_rule, tags, wm = differences(args.folder)
+    seeds = tuple(sorted(tags))
+    print(f"replication: world-model arm {wm or '(no files yet)'}; this store's tag {own_tag}; seeds with every file: "
+          f"{', '.join(f'{s} ({tags[s]})' for s in seeds) or 'none'} of {', '.join(map(str, SEEDS))}")
     if 0 < len(seeds) < len(SEEDS):
         print(f"  (predictions 1-3 read on {len(seeds)} of {len(SEEDS)} seeds: 'so far', not the pre-registered reading)")
     for r in judge(wm_sft, rule_sft, wm_rule, precisions, seeds):

@@ -45,6 +45,19 @@ def test_pooled_and_across_seed_differences_per_split(tmp_path):
     assert (tmp_path / "f.png").stat().st_size > 0
 
 
+def test_a_tag_per_seed_pairs_each_seed_within_its_own_build(tmp_path):
+    for seed, tag in ((0, "a"), (1, "b")):
+        _write(tmp_path, f"sft_s{seed}_{tag}_2026-01-01.jsonl", "sft", "ind", set())
+        _write(tmp_path, f"meth_s{seed}_{tag}_2026-01-01.jsonl", "ppo", "ind", {0, 1, 2, 3} if tag == "a" else set())
+    _write(tmp_path, "meth_s1_a_2026-01-01.jsonl", "ppo", "ind", {0, 1, 2, 3})  # seed 1 of build a: not listed, not read
+    (tmp_path / "comparisons.json").write_text(json.dumps({"comparisons": [
+        {"label": "meth", "stem": "meth", "baseline": "sft", "seeds": [0, 1], "tag": ["a", "b"], "splits": ["ind"]}]}))
+    out = _run("--manifest", str(tmp_path / "comparisons.json"))
+    assert out.returncode == 0, out.stderr
+    row = next(line for line in out.stdout.splitlines() if line.startswith("| meth |"))
+    assert "| +0.50 [+0.13, +0.87] |" in row  # seed 0 +1.00 (build a), seed 1 +0.00 (build b)
+
+
 def test_committed_manifest_pairs_every_listed_file():
     out = _run("--by-task", "--group", "push+pull=push,pull")
     assert out.returncode == 0, out.stderr
@@ -65,6 +78,9 @@ def test_committed_manifest_pairs_every_listed_file():
     ({"comparisons": [{"label": "x", "stem": "nothing", "baseline": "sft", "seeds": [0], "tag": "m"}]},
      "0 files match nothing_s0_m_<date>.jsonl"),
     ({"rows": []}, "expected {\"comparisons\""),
+    ({"comparisons": [{"label": "x", "stem": "meth", "baseline": "sft", "seeds": [0, 1], "tag": ["m"]}]},
+     "needs one non-empty tag per seed (2)"),
+    ({"comparisons": [{"label": "x", "stem": "meth", "baseline": "sft", "seeds": [0], "tag": 3}]}, "tag must be"),
 ])
 def test_bad_manifest_names_what_is_wrong(tmp_path, manifest, message):
     _write(tmp_path, "sft_s0_m_2026-01-01.jsonl", "sft", "ind", set())
