@@ -63,6 +63,21 @@ def test_a_sweeps_policies_are_evaluated_on_fresh_states_into_files_the_table_pa
     again = subprocess.run(driver, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "[1/" not in again.stdout and again.stdout.count("done ") == 2, again.stdout
 
+    # the states the two policies disagree on (at toy scale mostly agree on), looked at: both rerun there
+    line = next(x.split() for x in first.stdout.splitlines() if "evaluate_sft.py" in x and "--rl" in x)
+    flips = subprocess.run([sys.executable, str(REPO / "scripts" / "flip_strips.py"), *line[1:4],
+                            "--method", str(episodes_file(tmp_path, "rewards-wm", 0, "ood", "toy")),
+                            "--method-rl", line[line.index("--rl") + 1],
+                            "--baseline", str(episodes_file(tmp_path, "sft", 0, "ood", "toy")),
+                            "--per-way", "1", "--same", "1", "--max-steps", "5", "--jobs", "1", "--out", str(tmp_path / "strips")],
+                           cwd=REPO, capture_output=True, text=True, timeout=900)
+    assert flips.returncode == 0, flips.stdout + flips.stderr[-4000:]
+    shown_states = sorted((tmp_path / "strips").glob("*.png"))
+    assert 1 <= len(shown_states) <= 4  # one per kind at most; every pair falls in some kind
+    # the rerun is the file's episode again (every reset rebuilds the scene): each outcome reproduces
+    assert f"outcomes reproduced by the rerun: {2 * len(shown_states)} of {2 * len(shown_states)}" in flips.stdout, flips.stdout
+    assert all(p.name in (tmp_path / "strips" / "index.md").read_text() for p in shown_states)
+
 
 def test_an_acceptance_test_that_ppo_cannot_pass_ships_the_sft_policy(store):
     sets = ["--set", "rl.accept_episodes=1", "--set", "rl.accept_margin=1", "--set", "rl.precision_envs=0"]
