@@ -1,4 +1,4 @@
-"""Seven of the benchmarks under benchmarks/ run, each at its smallest size through its real entry point.
+"""Eight of the benchmarks under benchmarks/ run, each at its smallest size through its real entry point.
 
 They are not timed here (ratios are theirs to print); this only keeps them from rotting when the
 code they call changes (two had gone stale when the helpers they import gained a device). The
@@ -30,6 +30,12 @@ def test_wm_precision_prints_its_ratios():
 def test_sim_episode_prints_its_ratios():
     out = run("benchmarks/sim_episode.py", "--episodes", "1", "--steps", "2")
     assert "ratio fresh/held" in out and "ratio held/kept" in out and "ratio kept/cached" in out
+
+
+@pytest.mark.sim
+def test_ee_pose_prints_its_ratio_and_checks_the_joint_positions():
+    out = run("benchmarks/ee_pose.py", "--steps", "5", "--rounds", "2")
+    assert "round 2/2:" in out and "(same joint positions)" in out and "ratio scalar / ManiSkill's ee pose median" in out
 
 
 def test_wm_train_threads_prints_its_ratio():
