@@ -1,0 +1,134 @@
+"""Where a policy's placing episodes fail: how far each pick-and-place and move-to-aim episode gets.
+
+    PYTHONPATH=. .venv/bin/python scripts/place_failure_probe.py <collect> <tokenize> <sft> [--rl RL]
+        [--episodes 10] [--seed 1] [--splits ind] [--tasks pick_place move_to_aim] [--out FILE.jsonl]
+
+The policy acts closed loop (deterministic) on the evaluate stage's jobs (its scenes and initial
+states; ``--seed 1`` draws states apart from the stage's, as ``scripts/evaluate_sft.py``), and after
+every policy step the simulator's state is read: is the object grasped (ManiSkill's
+``is_grasping``), lifted (its centre 2 cm above its resting height), over the target (its centre
+within the container's inner radius or on the carpet), placed (the task's ``is_obj_placed``). Each
+episode is filed under the furthest phase it reached:
+
+  never grasped -> grasped, never lifted -> lifted, never over the target -> over the target,
+  not placed and released -> success
+
+and the table prints, per (split, task), how many episodes stopped at each phase, with the closest
+the object came to the target (median over the episodes). ``--out`` keeps one row per episode.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repo root: runs without PYTHONPATH=.
+
+PHASES = ("never grasped", "grasped, never lifted", "lifted, never over the target", "over the target, not placed",
+          "success")
+LIFT = 0.02  # m above the object's resting height: off the table
+
+
+def furthest_phase(steps: list[dict], success: bool) -> str:
+    """The furthest of ``PHASES`` an episode reached, from its per-step flags (grasped, lifted, over)."""
+    if success:
+        return PHASES[4]
+    reached = 0
+    for s in steps:
+        if s["grasped"]:
+            reached = max(reached, 1)
+        if s["grasped"] and s["lifted"]:
+            reached = max(reached, 2)
+        if reached >= 2 and s["over"]:
+            reached = max(reached, 3)
+    return PHASES[reached]
+
+
+def state_of(env) -> dict:
+    """The placing task's state after a step of ``env`` (a ``SimTaskEnv``): grasped, lifted, over, distance."""
+    u = env.env.unwrapped
+    p = u.obj.pose.p[0]  # (3,) world position of the object's centre
+    dist = float(np.linalg.norm((p[:2] - u._target_xy()[0]).numpy()))
+    return {"grasped": bool(u.agent.is_grasping(u.obj)[0]), "lifted": bool(p[2] > u.obj_rest_z + LIFT),
+            "over": dist < float(u._target_radius()), "dist": dist}
+
+
+def run(job) -> list[dict]:
+    """One row per seed of ``job``: phase, success, steps, the closest the object came to the target."""
+    from stages.evaluate.episodes import _policy_for, _sim_for, _spec
+    from stages.sft.policy import act
+
+    env, model, spec = _sim_for(job), _policy_for(job), _spec(job)
+    rows = []
+    for seed in job.seeds:
+        obs, info = env.reset(seed=seed, options={"spec": spec})
+        success, steps = bool(info["success"]), [state_of(env)]
+        while not success and len(steps) <= job.max_steps:
+            obs, _, terminated, truncated, info = env.step(act(model, {k: v[None] for k, v in obs.items()})[0])
+            steps.append(state_of(env))
+            success = success or bool(info["success"])
+            if terminated or truncated:
+                break
+        rows.append({"task": job.task, "scene_id": job.scene["scene_id"], "split": job.split, "seed": int(seed),
+                     "success": success, "steps": len(steps) - 1, "phase": furthest_phase(steps, success),
+                     "closest_cm": round(100 * min(s["dist"] for s in steps), 2)})
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    """Markdown: per (split, task), the episodes that stopped at each phase, and the median closest distance."""
+    groups = collections.defaultdict(list)
+    for r in rows:
+        groups[(r["split"], r["task"])].append(r)
+    head = "| split | task | episodes | " + " | ".join(PHASES) + " | closest to the target, median cm |"
+    lines = [head, "|" + "---|" * (len(PHASES) + 4)]
+    for (split, task), rs in sorted(groups.items()):
+        counts = collections.Counter(r["phase"] for r in rs)
+        lines.append(f"| {split} | {task} | {len(rs)} | " + " | ".join(str(counts[p]) for p in PHASES)
+                     + f" | {np.median([r['closest_cm'] for r in rs]):.1f} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    for name in ("collect", "tokenize", "sft"):
+        ap.add_argument(name, type=Path)
+    ap.add_argument("--rl", type=Path, default=None, help="probe this rl artifact's PPO policy instead of SFT")
+    ap.add_argument("--episodes", type=int, default=10, help="episodes per (task, split)")
+    ap.add_argument("--seed", type=int, default=1, help="the evaluate stage's seed (1: states apart from its own)")
+    ap.add_argument("--splits", default="ind")
+    ap.add_argument("--tasks", nargs="+", default=["pick_place", "move_to_aim"], choices=["pick_place", "move_to_aim"])
+    ap.add_argument("--max-steps", type=int, default=75)
+    ap.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+
+    from stages.evaluate import Config
+    from stages.evaluate.jobs import build_jobs
+    from stages.sft import read_policy_json
+
+    info = read_policy_json(args.sft)
+    missing = [t for t in args.tasks if t not in info["tasks"]]
+    if missing:
+        raise SystemExit(f"the policy of {args.sft} was not trained on {missing} (its tasks: {info['tasks']})")
+    dirs = {"collect": args.collect, "tokenize": args.tokenize, "sft": args.sft, "rl": args.rl or Path("/nonexistent")}
+    ctx = SimpleNamespace(input=lambda name: dirs[name], device="cpu")
+    cfg = Config(episodes=args.episodes, seed=args.seed, policies=["ppo" if args.rl else "sft"],
+                 splits=args.splits.split(","), videos=False, max_steps=args.max_steps, snapshot_episodes=0)
+    jobs = [j for j in build_jobs(ctx, cfg, {"tasks": info["tasks"], "frame_skip": info["frame_skip"]})
+            if j.task in args.tasks]
+    rows = []
+    for i, job in enumerate(jobs):
+        rows += run(job)
+        print(f"  job {i + 1}/{len(jobs)}: {job.task} {job.split} {job.scene['scene_id']}", flush=True)
+    if args.out is not None:
+        args.out.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    print(table(rows))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,48 @@
+"""scripts/place_failure_probe.py: an episode is filed under the furthest placing phase it reached, in order
+(a grasp must come before a lift, a lift before being over the target), and the table counts them."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "scripts"))
+
+from place_failure_probe import PHASES, furthest_phase, table  # noqa: E402
+
+
+def _steps(*flags: str) -> list[dict]:
+    """Per-step states from strings of the letters g (grasped), l (lifted), o (over the target)."""
+    return [{"grasped": "g" in f, "lifted": "l" in f, "over": "o" in f, "dist": 0.1} for f in flags]
+
+
+@pytest.mark.parametrize("flags, success, phase", [
+    (("", "", ""), False, "never grasped"),
+    (("", "o", "l"), False, "never grasped"),                       # pushed over the target, never held: no grasp
+    (("g", "g", ""), False, "grasped, never lifted"),
+    (("g", "gl", "l"), False, "lifted, never over the target"),    # dropped while carrying it
+    (("gl", "", "o"), False, "over the target, not placed"),        # lifted, then over the target later
+    (("o", "gl", ""), False, "lifted, never over the target"),      # over the target only before the lift
+    (("gl", "glo", "o"), True, "success"),
+])
+def test_furthest_phase(flags, success, phase):
+    assert furthest_phase(_steps(*flags), success) == phase
+
+
+def test_table_counts_each_phase_per_split_and_task():
+    rows = [{"split": "ind", "task": "move_to_aim", "phase": p, "closest_cm": c}
+            for p, c in zip(PHASES, (10.0, 8.0, 6.0, 2.0, 1.0))]
+    rows.append({"split": "ind", "task": "pick_place", "phase": "success", "closest_cm": 0.5})
+    out = table(rows).splitlines()
+    assert out[2] == "| ind | move_to_aim | 5 | 1 | 1 | 1 | 1 | 1 | 6.0 |"
+    assert out[3] == "| ind | pick_place | 1 | 0 | 0 | 0 | 0 | 1 | 0.5 |"
+
+
+def test_a_task_the_policy_was_not_trained_on_is_refused(tmp_path):
+    (tmp_path / "policy.json").write_text('{"tasks": ["push"], "frame_skip": 4}')
+    out = subprocess.run([sys.executable, str(REPO / "scripts" / "place_failure_probe.py"), str(tmp_path), str(tmp_path),
+                          str(tmp_path)], capture_output=True, text=True, cwd=REPO)
+    assert out.returncode != 0 and "not trained on ['pick_place', 'move_to_aim']" in out.stderr, out.stderr
