@@ -2,6 +2,7 @@
 
     PYTHONPATH=. .venv/bin/python scripts/place_failure_probe.py <collect> <tokenize> <sft> [--rl RL]
         [--episodes 10] [--seed 1] [--splits ind] [--tasks pick_place move_to_aim] [--out FILE.jsonl]
+        [--strips DIR]
 
 The policy acts closed loop (deterministic) on the evaluate stage's jobs (its scenes and initial
 states; ``--seed 1`` draws states apart from the stage's, as ``scripts/evaluate_sft.py``), and after
@@ -14,7 +15,10 @@ episode is filed under the furthest phase it reached:
   not placed and released -> success
 
 and the table prints, per (split, task), how many episodes stopped at each phase, with the closest
-the object came to the target (median over the episodes). ``--out`` keeps one row per episode.
+the object came to the target (median over the episodes). ``--out`` keeps one row per episode;
+``--strips DIR`` saves, for the first episode of each (split, task, phase), 8 third-view frames from
+start to end (``DIR/<split>_<task>_<phase>.png``; every control step is rendered then, so it runs
+slower): look at the failures before believing the counts.
 """
 from __future__ import annotations
 
@@ -58,12 +62,14 @@ def state_of(env) -> dict:
             "over": dist < float(u._target_radius()), "dist": dist}
 
 
-def run(job) -> list[dict]:
-    """One row per seed of ``job``: phase, success, steps, the closest the object came to the target."""
+def run(job, frames: bool = False) -> list[dict]:
+    """One row per seed of ``job``: phase, success, steps, the closest the object came to the target
+    (and with ``frames`` its third-view frames, (control steps + 1, H, W, 3) uint8)."""
     from stages.evaluate.episodes import _policy_for, _sim_for, _spec
     from stages.sft.policy import act
 
     env, model, spec = _sim_for(job), _policy_for(job), _spec(job)
+    env.keep_frames = frames
     rows = []
     for seed in job.seeds:
         obs, info = env.reset(seed=seed, options={"spec": spec})
@@ -77,7 +83,27 @@ def run(job) -> list[dict]:
         rows.append({"task": job.task, "scene_id": job.scene["scene_id"], "split": job.split, "seed": int(seed),
                      "success": success, "steps": len(steps) - 1, "phase": furthest_phase(steps, success),
                      "closest_cm": round(100 * min(s["dist"] for s in steps), 2)})
+        if frames:
+            rows[-1]["frames"] = np.stack([f[0] for f in env.frames])
+    env.keep_frames = False
     return rows
+
+
+def save_strips(rows: list[dict], out: Path) -> list[Path]:
+    """The first episode of each (split, task, phase) as a strip of 8 frames, start to end."""
+    from PIL import Image
+
+    out.mkdir(parents=True, exist_ok=True)
+    saved = {}
+    for r in rows:
+        name = f"{r['split']}_{r['task']}_{r['phase'].replace(', ', '_').replace(' ', '_')}.png"
+        if name in saved:
+            continue
+        picks = np.linspace(0, len(r["frames"]) - 1, 8).round().astype(int)
+        strip = np.concatenate([r["frames"][i] for i in picks], axis=1)  # (H, 8W, 3)
+        Image.fromarray(strip).resize((strip.shape[1] * 2, strip.shape[0] * 2), Image.NEAREST).save(out / name)
+        saved[name] = out / name
+    return list(saved.values())
 
 
 def table(rows: list[dict]) -> str:
@@ -105,6 +131,7 @@ def main() -> None:
     ap.add_argument("--tasks", nargs="+", default=["pick_place", "move_to_aim"], choices=["pick_place", "move_to_aim"])
     ap.add_argument("--max-steps", type=int, default=75)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--strips", type=Path, default=None, help="save a frame strip per (split, task, phase) here")
     args = ap.parse_args()
 
     from stages.evaluate import Config
@@ -123,8 +150,11 @@ def main() -> None:
             if j.task in args.tasks]
     rows = []
     for i, job in enumerate(jobs):
-        rows += run(job)
+        rows += run(job, frames=args.strips is not None)
         print(f"  job {i + 1}/{len(jobs)}: {job.task} {job.split} {job.scene['scene_id']}", flush=True)
+    if args.strips is not None:
+        print(f"frame strips: {len(save_strips(rows, args.strips))} in {args.strips}")
+    rows = [{k: v for k, v in r.items() if k != "frames"} for r in rows]
     if args.out is not None:
         args.out.write_text("".join(json.dumps(r) + "\n" for r in rows))
     print(table(rows))
