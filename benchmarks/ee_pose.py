@@ -1,4 +1,4 @@
-"""What the scalar end-effector pose (stages/collect/ee_pose.py) buys a simulator step, in one run.
+"""What the arm controller's pose arithmetic on scalars (stages/collect/ee_pose.py) buys a simulator step, in one run.
 
 One push env (the default scene, low-poly Panda, 64x64 RGB of both cameras at every step, as
 collect records), random actions (speed does not depend on them). Each round runs ``--steps``

@@ -8,11 +8,11 @@ The policy acts closed loop (deterministic) on the evaluate stage's jobs (its sc
 states; ``--seed 1`` draws states apart from the stage's, as ``scripts/evaluate_sft.py``), and after
 every policy step the simulator's state is read: is the object grasped (ManiSkill's
 ``is_grasping``), lifted (its centre 2 cm above its resting height), over the target (its centre
-within the container's inner radius or on the carpet), placed (the task's ``is_obj_placed``). Each
+within the container's inner radius or on the carpet); success is the task's own check. Each
 episode is filed under the furthest phase it reached:
 
   never grasped -> grasped, never lifted -> lifted, never over the target -> over the target,
-  not placed and released -> success
+  not placed -> success (placed, resting and released)
 
 and the table prints, per (split, task), how many episodes stopped at each phase, with the closest
 the object came to the target (median over the episodes). ``--out`` keeps one row per episode;
