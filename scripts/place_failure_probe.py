@@ -2,7 +2,7 @@
 
     PYTHONPATH=. .venv/bin/python scripts/place_failure_probe.py <collect> <tokenize> <sft> [--rl RL]
         [--episodes 10] [--seed 1] [--splits ind] [--tasks pick_place move_to_aim] [--out FILE.jsonl]
-        [--strips DIR]
+        [--strips DIR] [--hide carpet container]
 
 The policy acts closed loop (deterministic) on the evaluate stage's jobs (its scenes and initial
 states; ``--seed 1`` draws states apart from the stage's, as ``scripts/evaluate_sft.py``), and after
@@ -18,12 +18,18 @@ and the table prints, per (split, task), how many episodes stopped at each phase
 the object came to the target (median over the episodes). ``--out`` keeps one row per episode;
 ``--strips DIR`` saves, for the first episode of each (split, task, phase), 8 third-view frames from
 start to end (``DIR/<split>_<task>_<phase>.png``; every control step is rendered then, so it runs
-slower): look at the failures before believing the counts.
+slower): look at the failures before believing the counts. Each row also keeps how close the gripper
+(ManiSkill's TCP) came to the object, ``reach_cm``: a policy that never grasps may stop short of the
+object or go somewhere else. ``--hide carpet`` / ``--hide container`` move that actor 20 cm under
+the table at every reset, after the layout is drawn (same states; the target's xy is kept, so success
+is still judged against it): the policy then acts on a scene without it, to ask whether what it sees
+there is what breaks the grasp.
 """
 from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -36,6 +42,37 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repo root: r
 PHASES = ("never grasped", "grasped, never lifted", "lifted, never over the target", "over the target, not placed",
           "success")
 LIFT = 0.02  # m above the object's resting height: off the table
+HIDEABLE = ("carpet", "container")
+UNDER_TABLE = -0.2  # m: the table's top is a 4 cm box below z=0; the carpet has no collision, the container is kinematic
+
+
+@contextlib.contextmanager
+def hidden(names):
+    """Within the block, every task env moves the actors ``names`` (of ``HIDEABLE``) under the table at each
+    reset, after its layout is drawn; xy kept, so the target's position and the states drawn are the same."""
+    from mani_skill.utils.structs.pose import Pose
+
+    from stages.collect.envs import RSTabletopEnv
+
+    unknown = sorted(set(names) - set(HIDEABLE))
+    if unknown:
+        raise ValueError(f"cannot hide {unknown}; hideable: {list(HIDEABLE)}")
+    original = RSTabletopEnv._initialize_episode
+
+    def initialize(self, env_idx, options):
+        original(self, env_idx, options)
+        for name in names:
+            actor = getattr(self, name, None)  # pick-and-place has no carpet
+            if actor is not None:
+                p = actor.pose.p.clone()  # (1, 3)
+                p[:, 2] = UNDER_TABLE
+                actor.set_pose(Pose.create_from_pq(p, actor.pose.q))
+
+    RSTabletopEnv._initialize_episode = initialize
+    try:
+        yield
+    finally:
+        RSTabletopEnv._initialize_episode = original
 
 
 def furthest_phase(steps: list[dict], success: bool) -> str:
@@ -54,12 +91,14 @@ def furthest_phase(steps: list[dict], success: bool) -> str:
 
 
 def state_of(env) -> dict:
-    """The placing task's state after a step of ``env`` (a ``SimTaskEnv``): grasped, lifted, over, distance."""
+    """The placing task's state after a step of ``env`` (a ``SimTaskEnv``): grasped, lifted, over, the object's
+    xy distance to the target and the gripper's (TCP's) distance to the object."""
     u = env.env.unwrapped
     p = u.obj.pose.p[0]  # (3,) world position of the object's centre
     dist = float(np.linalg.norm((p[:2] - u._target_xy()[0]).numpy()))
+    reach = float(np.linalg.norm((u.agent.tcp_pose.p[0] - p).numpy()))
     return {"grasped": bool(u.agent.is_grasping(u.obj)[0]), "lifted": bool(p[2] > u.obj_rest_z + LIFT),
-            "over": dist < float(u._target_radius()), "dist": dist}
+            "over": dist < float(u._target_radius()), "dist": dist, "reach": reach}
 
 
 def run(job, frames: bool = False) -> list[dict]:
@@ -82,7 +121,8 @@ def run(job, frames: bool = False) -> list[dict]:
                 break
         rows.append({"task": job.task, "scene_id": job.scene["scene_id"], "split": job.split, "seed": int(seed),
                      "success": success, "steps": len(steps) - 1, "phase": furthest_phase(steps, success),
-                     "closest_cm": round(100 * min(s["dist"] for s in steps), 2)})
+                     "closest_cm": round(100 * min(s["dist"] for s in steps), 2),
+                     "reach_cm": round(100 * min(s["reach"] for s in steps), 2)})
         if frames:
             rows[-1]["frames"] = np.stack([f[0] for f in env.frames])
     env.keep_frames = False
@@ -111,13 +151,20 @@ def table(rows: list[dict]) -> str:
     groups = collections.defaultdict(list)
     for r in rows:
         groups[(r["split"], r["task"])].append(r)
-    head = "| split | task | episodes | " + " | ".join(PHASES) + " | closest to the target, median cm |"
-    lines = [head, "|" + "---|" * (len(PHASES) + 4)]
+    head = ("| split | task | episodes | " + " | ".join(PHASES)
+            + " | closest to the target, median cm | gripper closest to the object, median cm |")
+    lines = [head, "|" + "---|" * (len(PHASES) + 5)]
     for (split, task), rs in sorted(groups.items()):
         counts = collections.Counter(r["phase"] for r in rs)
         lines.append(f"| {split} | {task} | {len(rs)} | " + " | ".join(str(counts[p]) for p in PHASES)
-                     + f" | {np.median([r['closest_cm'] for r in rs]):.1f} |")
+                     + f" | {np.median([r['closest_cm'] for r in rs]):.1f} | {_median(rs, 'reach_cm')} |")
     return "\n".join(lines)
+
+
+def _median(rows: list[dict], key: str) -> str:
+    """The median of ``key`` over ``rows`` to 0.1, or "-" where the rows predate it."""
+    values = [r[key] for r in rows if key in r]
+    return f"{np.median(values):.1f}" if values else "-"
 
 
 def main() -> None:
@@ -132,6 +179,7 @@ def main() -> None:
     ap.add_argument("--max-steps", type=int, default=75)
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--strips", type=Path, default=None, help="save a frame strip per (split, task, phase) here")
+    ap.add_argument("--hide", nargs="+", default=[], choices=HIDEABLE, help="move these under the table at each reset")
     args = ap.parse_args()
 
     from stages.evaluate import Config
@@ -149,9 +197,10 @@ def main() -> None:
     jobs = [j for j in build_jobs(ctx, cfg, {"tasks": info["tasks"], "frame_skip": info["frame_skip"]})
             if j.task in args.tasks]
     rows = []
-    for i, job in enumerate(jobs):
-        rows += run(job, frames=args.strips is not None)
-        print(f"  job {i + 1}/{len(jobs)}: {job.task} {job.split} {job.scene['scene_id']}", flush=True)
+    with hidden(args.hide):
+        for i, job in enumerate(jobs):
+            rows += run(job, frames=args.strips is not None)
+            print(f"  job {i + 1}/{len(jobs)}: {job.task} {job.split} {job.scene['scene_id']}", flush=True)
     if args.strips is not None:
         print(f"frame strips: {len(save_strips(rows, args.strips))} in {args.strips}")
     rows = [{k: v for k, v in r.items() if k != "frames"} for r in rows]

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
@@ -33,12 +34,12 @@ def test_furthest_phase(flags, success, phase):
 
 
 def test_table_counts_each_phase_per_split_and_task():
-    rows = [{"split": "ind", "task": "move_to_aim", "phase": p, "closest_cm": c}
-            for p, c in zip(PHASES, (10.0, 8.0, 6.0, 2.0, 1.0))]
-    rows.append({"split": "ind", "task": "pick_place", "phase": "success", "closest_cm": 0.5})
+    rows = [{"split": "ind", "task": "move_to_aim", "phase": p, "closest_cm": c, "reach_cm": r}
+            for p, c, r in zip(PHASES, (10.0, 8.0, 6.0, 2.0, 1.0), (9.0, 1.0, 1.5, 2.5, 0.5))]
+    rows.append({"split": "ind", "task": "pick_place", "phase": "success", "closest_cm": 0.5})  # a row from before reach_cm
     out = table(rows).splitlines()
-    assert out[2] == "| ind | move_to_aim | 5 | 1 | 1 | 1 | 1 | 1 | 6.0 |"
-    assert out[3] == "| ind | pick_place | 1 | 0 | 0 | 0 | 0 | 1 | 0.5 |"
+    assert out[2] == "| ind | move_to_aim | 5 | 1 | 1 | 1 | 1 | 1 | 6.0 | 1.5 |"
+    assert out[3] == "| ind | pick_place | 1 | 0 | 0 | 0 | 0 | 1 | 0.5 | - |"
 
 
 def test_a_task_the_policy_was_not_trained_on_is_refused(tmp_path):
@@ -46,3 +47,37 @@ def test_a_task_the_policy_was_not_trained_on_is_refused(tmp_path):
     out = subprocess.run([sys.executable, str(REPO / "scripts" / "place_failure_probe.py"), str(tmp_path), str(tmp_path),
                           str(tmp_path)], capture_output=True, text=True, cwd=REPO)
     assert out.returncode != 0 and "not trained on ['pick_place', 'move_to_aim']" in out.stderr, out.stderr
+
+
+@pytest.mark.sim
+def test_hidden_carpet_leaves_the_view_and_keeps_the_layout():
+    """--hide carpet: the purple carpet is gone from the third view, the object and the target's xy are where
+    the same seed put them, and the env is back to normal after the block."""
+    from place_failure_probe import hidden
+    from stages.collect.envs import DEFAULT_SCENE
+    from stages.collect.sim import make_task_env
+
+    def look(env) -> tuple[int, np.ndarray, np.ndarray]:
+        obs, _ = env.reset(seed=3)
+        r, g, b = obs["third"].astype(int).transpose(2, 0, 1)  # (H, W) each, from (H, W, 3) uint8
+        purple = ((b > g + 40) & (r > g + 20)).sum()  # the carpet's hue as rendered (176, 111, 202); the red cube's is not
+        u = env.unwrapped
+        return int(purple), u.obj.pose.p[0, :2].numpy().copy(), u._target_xy()[0].numpy().copy()
+
+    env = make_task_env("move_to_aim", DEFAULT_SCENE)
+    shown, obj, target = look(env)
+    with hidden(["carpet"]):
+        gone, obj_hidden, target_hidden = look(env)
+    back, _, _ = look(env)
+    env.close()
+    assert shown > 20 and back == shown, (shown, back)
+    assert gone == 0, gone
+    assert np.array_equal(obj, obj_hidden) and np.array_equal(target, target_hidden)
+
+
+def test_hiding_an_unknown_actor_is_refused():
+    from place_failure_probe import hidden
+
+    with pytest.raises(ValueError, match="cannot hide \\['table'\\]"):
+        with hidden(["table"]):
+            pass
