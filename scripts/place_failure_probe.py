@@ -18,12 +18,14 @@ and the table prints, per (split, task), how many episodes stopped at each phase
 the object came to the target (median over the episodes). ``--out`` keeps one row per episode;
 ``--strips DIR`` saves, for the first episode of each (split, task, phase), 8 third-view frames from
 start to end (``DIR/<split>_<task>_<phase>.png``; every control step is rendered then, so it runs
-slower): look at the failures before believing the counts. Each row also keeps how close the gripper
-(ManiSkill's TCP) came to the object, ``reach_cm``: a policy that never grasps may stop short of the
-object or go somewhere else. ``--hide carpet`` / ``--hide container`` move that actor 20 cm under
-the table at every reset, after the layout is drawn (same states; the target's xy is kept, so success
-is still judged against it): the policy then acts on a scene without it, to ask whether what it sees
-there is what breaks the grasp.
+slower): look at the failures before believing the counts. Each row also keeps how close the
+gripper (ManiSkill's TCP) came to the object, ``reach_cm``, and to the target in xy, ``aim_cm``, and
+how close the object came to the container in xy, ``container_cm`` (move to aim's distractor): a
+policy that never grasps may stop short of the object or go somewhere else, and one that carries
+the object may carry it to the wrong place. ``--hide carpet`` / ``--hide container`` move that actor
+20 cm under the table at every reset, after the layout is drawn (same states; the target's xy is
+kept, so success is still judged against it): the policy then acts on a scene without it, to ask
+whether what it sees there is what breaks the grasp.
 """
 from __future__ import annotations
 
@@ -50,9 +52,9 @@ UNDER_TABLE = -0.2  # m: the table's top is a 4 cm box below z=0; the carpet has
 def hidden(names):
     """Within the block, every task env moves the actors ``names`` (of ``HIDEABLE``) under the table at each
     reset, after its layout is drawn; xy kept, so the target's position and the states drawn are the same."""
-    from mani_skill.utils.structs.pose import Pose
+    from stages.collect.envs import RSTabletopEnv  # first: it sets up Vulkan before sapien is imported
 
-    from stages.collect.envs import RSTabletopEnv
+    from mani_skill.utils.structs.pose import Pose
 
     unknown = sorted(set(names) - set(HIDEABLE))
     if unknown:
@@ -96,9 +98,13 @@ def state_of(env) -> dict:
     u = env.env.unwrapped
     p = u.obj.pose.p[0]  # (3,) world position of the object's centre
     dist = float(np.linalg.norm((p[:2] - u._target_xy()[0]).numpy()))
-    reach = float(np.linalg.norm((u.agent.tcp_pose.p[0] - p).numpy()))
+    tcp = u.agent.tcp_pose.p[0]  # (3,)
+    reach = float(np.linalg.norm((tcp - p).numpy()))
+    aim = float(np.linalg.norm((tcp[:2] - u._target_xy()[0]).numpy()))
+    container = float(np.linalg.norm((p[:2] - u.container.pose.p[0, :2]).numpy()))
     return {"grasped": bool(u.agent.is_grasping(u.obj)[0]), "lifted": bool(p[2] > u.obj_rest_z + LIFT),
-            "over": dist < float(u._target_radius()), "dist": dist, "reach": reach}
+            "over": dist < float(u._target_radius()), "dist": dist, "reach": reach, "aim": aim,
+            "container": container}
 
 
 def run(job, frames: bool = False) -> list[dict]:
@@ -122,7 +128,9 @@ def run(job, frames: bool = False) -> list[dict]:
         rows.append({"task": job.task, "scene_id": job.scene["scene_id"], "split": job.split, "seed": int(seed),
                      "success": success, "steps": len(steps) - 1, "phase": furthest_phase(steps, success),
                      "closest_cm": round(100 * min(s["dist"] for s in steps), 2),
-                     "reach_cm": round(100 * min(s["reach"] for s in steps), 2)})
+                     "reach_cm": round(100 * min(s["reach"] for s in steps), 2),
+                     "aim_cm": round(100 * min(s["aim"] for s in steps), 2),
+                     "container_cm": round(100 * min(s["container"] for s in steps), 2)})
         if frames:
             rows[-1]["frames"] = np.stack([f[0] for f in env.frames])
     env.keep_frames = False
