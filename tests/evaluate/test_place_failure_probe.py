@@ -52,8 +52,9 @@ def test_a_task_the_policy_was_not_trained_on_is_refused(tmp_path):
 @pytest.mark.sim
 def test_hidden_carpet_leaves_the_view_and_keeps_the_layout():
     """--hide carpet: the purple carpet is gone from the third view, the object and the target's xy are where
-    the same seed put them, and the env is back to normal after the block."""
-    from place_failure_probe import hidden
+    the same seed put them, and the env is back to normal after the block; --hide container puts the container
+    under the table."""
+    from place_failure_probe import UNDER_TABLE, hidden
     from stages.collect.envs import DEFAULT_SCENE
     from stages.collect.sim import make_task_env
 
@@ -69,7 +70,11 @@ def test_hidden_carpet_leaves_the_view_and_keeps_the_layout():
     with hidden(["carpet"]):
         gone, obj_hidden, target_hidden = look(env)
     back, _, _ = look(env)
+    with hidden(["container"]):  # white like the table's highlights: read its pose, not its pixels
+        env.reset(seed=3)
+        container_z = float(env.unwrapped.container.pose.p[0, 2])
     env.close()
+    assert container_z == pytest.approx(UNDER_TABLE), container_z
     assert shown > 20 and back == shown, (shown, back)
     assert gone == 0, gone
     assert np.array_equal(obj, obj_hidden) and np.array_equal(target, target_hidden)
