@@ -52,13 +52,13 @@ UNDER_TABLE = -0.2  # m: the table's top is a 4 cm box below z=0; the carpet has
 def hidden(names):
     """Within the block, every task env moves the actors ``names`` (of ``HIDEABLE``) under the table at each
     reset, after its layout is drawn; xy kept, so the target's position and the states drawn are the same."""
+    unknown = sorted(set(names) - set(HIDEABLE))
+    if unknown:
+        raise ValueError(f"cannot hide {unknown}; hideable: {list(HIDEABLE)}")
     from stages.collect.envs import RSTabletopEnv  # first: it sets up Vulkan before sapien is imported
 
     from mani_skill.utils.structs.pose import Pose
 
-    unknown = sorted(set(names) - set(HIDEABLE))
-    if unknown:
-        raise ValueError(f"cannot hide {unknown}; hideable: {list(HIDEABLE)}")
     original = RSTabletopEnv._initialize_episode
 
     def initialize(self, env_idx, options):
