@@ -22,7 +22,10 @@ slower): look at the failures before believing the counts. Each row also keeps h
 gripper (ManiSkill's TCP) came to the object, ``reach_cm``, and to the target in xy, ``aim_cm``, and
 how close the object came to the container in xy, ``container_cm`` (move to aim's distractor): a
 policy that never grasps may stop short of the object or go somewhere else, and one that carries
-the object may carry it to the wrong place. ``--hide carpet`` / ``--hide container`` move that actor
+the object may carry it to the wrong place. Where the policy first commands the gripper shut it
+keeps the policy step, ``close_step``, the gripper's distance to the object, ``close_reach_cm``, and
+its height above the object's centre, ``close_above_cm`` (None if it never closes): a grasp missed
+by a centimetre, a grasp closed in the air, and no grasp tried look alike in the phase counts. ``--hide carpet`` / ``--hide container`` move that actor
 20 cm under the table at every reset, after the layout is drawn (same states; the target's xy is
 kept, so success is still judged against it): the policy then acts on a scene without it, to ask
 whether what it sees there is what breaks the grasp.
@@ -104,7 +107,18 @@ def state_of(env) -> dict:
     container = float(np.linalg.norm((p[:2] - u.container.pose.p[0, :2]).numpy()))
     return {"grasped": bool(u.agent.is_grasping(u.obj)[0]), "lifted": bool(p[2] > u.obj_rest_z + LIFT),
             "over": dist < float(u._target_radius()), "dist": dist, "reach": reach, "aim": aim,
-            "container": container}
+            "container": container, "above": float(tcp[2] - p[2])}
+
+
+def first_close(steps: list[dict], grippers: list[float]) -> dict:
+    """Where the policy first commands the gripper shut (gripper action < 0, ``stages.collect.actions``):
+    the policy step, the TCP's distance to the object and its height above the object's centre then
+    (cm; the state the command was issued in). All None if it never does."""
+    k = next((i for i, g in enumerate(grippers) if g < 0), None)
+    if k is None:
+        return {"close_step": None, "close_reach_cm": None, "close_above_cm": None}
+    return {"close_step": k, "close_reach_cm": round(100 * steps[k]["reach"], 2),
+            "close_above_cm": round(100 * steps[k]["above"], 2)}
 
 
 def run(job, frames: bool = False) -> list[dict]:
@@ -118,9 +132,11 @@ def run(job, frames: bool = False) -> list[dict]:
     rows = []
     for seed in job.seeds:
         obs, info = env.reset(seed=seed, options={"spec": spec})
-        success, steps = bool(info["success"]), [state_of(env)]
+        success, steps, grippers = bool(info["success"]), [state_of(env)], []
         while not success and len(steps) <= job.max_steps:
-            obs, _, terminated, truncated, info = env.step(act(model, {k: v[None] for k, v in obs.items()})[0])
+            action = act(model, {k: v[None] for k, v in obs.items()})[0]  # (7,)
+            grippers.append(float(action[6]))
+            obs, _, terminated, truncated, info = env.step(action)
             steps.append(state_of(env))
             success = success or bool(info["success"])
             if terminated or truncated:
@@ -130,7 +146,8 @@ def run(job, frames: bool = False) -> list[dict]:
                      "closest_cm": round(100 * min(s["dist"] for s in steps), 2),
                      "reach_cm": round(100 * min(s["reach"] for s in steps), 2),
                      "aim_cm": round(100 * min(s["aim"] for s in steps), 2),
-                     "container_cm": round(100 * min(s["container"] for s in steps), 2)})
+                     "container_cm": round(100 * min(s["container"] for s in steps), 2),
+                     **first_close(steps, grippers)})
         if frames:
             rows[-1]["frames"] = np.stack([f[0] for f in env.frames])
     env.keep_frames = False

@@ -12,7 +12,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "scripts"))
 
-from place_failure_probe import PHASES, furthest_phase, table  # noqa: E402
+from place_failure_probe import PHASES, first_close, furthest_phase, table  # noqa: E402
 
 
 def _steps(*flags: str) -> list[dict]:
@@ -31,6 +31,12 @@ def _steps(*flags: str) -> list[dict]:
 ])
 def test_furthest_phase(flags, success, phase):
     assert furthest_phase(_steps(*flags), success) == phase
+
+
+def test_first_close_is_read_in_the_state_the_command_was_issued_in():
+    steps = [{"reach": r, "above": a} for r, a in ((0.20, 0.15), (0.09, 0.08), (0.012, 0.004), (0.01, 0.0))]
+    assert first_close(steps, [1.0, 0.4, -0.7, -1.0]) == {"close_step": 2, "close_reach_cm": 1.2, "close_above_cm": 0.4}
+    assert first_close(steps, [1.0, 1.0, 0.2]) == {"close_step": None, "close_reach_cm": None, "close_above_cm": None}
 
 
 def test_table_counts_each_phase_per_split_and_task():
