@@ -87,6 +87,9 @@ class Config(BaseModel):
         "(stages/sft/observation.py; docs/sft.md)")
     normalize_actions: bool = Field(True, description="per-dimension action normalisation in the loss and network "
                                     "(False: raw actions, where the +-1 gripper dominates the MSE)")
+    ensemble: int = Field(1, ge=1, description="policies trained on the same split, each from its own initialisation "
+                          "and batch order; the stage keeps one network acting on their mean action "
+                          "(stages.sft.policy.assemble; docs/sft.md, 'An ensemble of trainings')")
     noise_scale: float = Field(1.0, gt=0, description="PPO's initial action std = noise_scale x held-out residual std")
     noise_floor: float = Field(0.02, gt=0, description="lower bound of the initial action std (action units)")
 
@@ -110,7 +113,8 @@ def run(ctx) -> None:
     from stages.common.text_encoder import encode_texts
     from stages.sft.data import load_demo, pairs
     from stages.sft.observation import ObservationFn
-    from stages.sft.policy import POLICY_FILE, behaviour_clone, dim_weights, evaluate_pairs, make_policy, policy_kwargs
+    from stages.sft.policy import (POLICY_FILE, assemble, behaviour_clone, dim_weights, evaluate_pairs, make_policy,
+                                   member_seed, policy_kwargs)
     from stages.tokenize.store import TokenStore
     from stages.tokenize.tokenizer import load_tokenizer
 
@@ -152,14 +156,25 @@ def run(ctx) -> None:
     kwargs = policy_kwargs(loc, scale, features_dim=cfg.features_dim, net_arch=cfg.net_arch, use_proprio=cfg.use_proprio,
                            dropout=cfg.dropout)
     weights = dim_weights(cfg.gripper_weight, cfg.rotation_weight)
-    policy = make_policy(obs_fn.space, kwargs, cfg.lr).to(ctx.device)
     ctx.log.info("sft: %d train / %d held-out demonstrations (%d / %d pairs), tasks %s, kinds %s",
                  len(train_ids), len(val_ids), len(train[1]), 0 if val is None else len(val[1]), cfg.tasks, cfg.kinds)
     t_fit = time.perf_counter()
-    with ctx.progress(cfg.epochs, "sft: epochs", unit="epoch") as bar:
-        hist = behaviour_clone(policy, train, val, epochs=cfg.epochs, lr=cfg.lr, weight_decay=cfg.weight_decay,
-                               batch_size=cfg.batch_size, patience=cfg.patience, weights=weights,
-                               seed=cfg.seed, keep=cfg.keep, progress=bar)
+    members, hists, member_held = [], [], []
+    for k in range(cfg.ensemble):  # member 0 is the policy a run without an ensemble trains
+        policy = make_policy(obs_fn.space, kwargs, cfg.lr).to(ctx.device)  # initialised from the run's RNG, in turn
+        desc = "sft: epochs" if cfg.ensemble == 1 else f"sft: member {k + 1}/{cfg.ensemble}, epochs"
+        with ctx.progress(cfg.epochs, desc, unit="epoch") as bar:
+            hists.append(behaviour_clone(policy, train, val, epochs=cfg.epochs, lr=cfg.lr, weight_decay=cfg.weight_decay,
+                                         batch_size=cfg.batch_size, patience=cfg.patience, weights=weights,
+                                         seed=member_seed(cfg.seed, k), keep=cfg.keep, progress=bar))
+        members.append(policy)
+        if cfg.ensemble > 1:
+            member_held.append(evaluate_pairs(policy, val if val is not None else train, weights))
+    hist = hists[0]
+    if cfg.ensemble > 1:
+        kwargs = policy_kwargs(loc, scale, features_dim=cfg.features_dim, net_arch=cfg.net_arch,
+                               use_proprio=cfg.use_proprio, dropout=cfg.dropout, members=cfg.ensemble)
+        policy = assemble(members, obs_fn.space, kwargs)
     fit_seconds = time.perf_counter() - t_fit
     held = evaluate_pairs(policy, val if val is not None else train, weights)
     train_eval = evaluate_pairs(policy, train, weights)
@@ -173,7 +188,7 @@ def run(ctx) -> None:
         curves.series("sft/loss_heldout", hist["val"])
 
     info = {"frame_skip": cfg.frame_skip, "tasks": list(cfg.tasks), "observation": sorted(obs_fn.space.spaces),
-            "frame": cfg.frame,
+            "frame": cfg.frame, "ensemble": cfg.ensemble,
             "grid": list(tok.grid), "bits": tok.bits, "action_loc": loc.tolist(), "action_scale": scale.tolist(),
             "initial_action_std": noise.tolist(),
             # how the demonstrations were read and weighed: rl's demonstration anchor (rl.demo_bc_batches) reuses it
@@ -190,6 +205,7 @@ def run(ctx) -> None:
         "loss/train_last": hist["train"][-1] if hist["train"] else None,
         "loss/val_best": min(hist["val"]) if hist["val"] else None,
         "loss_history": {"train": hist["train"], "val": hist["val"]},
+        "val/loss": held["loss"],  # the kept policy's (the ensemble's, with members; the history is member 0's)
         "val/gripper_sign_accuracy": held["gripper_sign_accuracy"],
         "train/gripper_sign_accuracy": train_eval["gripper_sign_accuracy"],
         **{f"val/r2/{d}": v for d, v in zip(dims, held["r2"])},
@@ -197,6 +213,11 @@ def run(ctx) -> None:
         **{f"val/residual_std/{d}": v for d, v in zip(dims, held["residual_std"])},
         "fit_seconds": fit_seconds, "stage_seconds": time.perf_counter() - t0,
     }
+    if cfg.ensemble > 1:  # the members alone on the same held-out pairs, and their epochs
+        metrics["members"] = [{"epochs_run": h["epochs_run"], "best_epoch": h["best_epoch"],
+                               "val/loss": m["loss"], "val/gripper_sign_accuracy": m["gripper_sign_accuracy"],
+                               **{f"val/r2/{d}": v for d, v in zip(dims, m["r2"])}}
+                              for h, m in zip(hists, member_held)]
     ctx.write_metrics(metrics)
     ctx.log.info("sft: %d epochs (best %d) in %.0f s; held-out R^2 %s, gripper sign accuracy %.3f",
                  hist["epochs_run"], hist["best_epoch"], fit_seconds,

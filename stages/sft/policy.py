@@ -38,9 +38,13 @@ class LatentExtractor(BaseFeaturesExtractor):
     """
 
     def __init__(self, observation_space: gym.spaces.Dict, features_dim: int = 256, use_proprio: bool = True,
-                 dropout: float = 0.0):
-        super().__init__(observation_space, features_dim)
+                 dropout: float = 0.0, members: int = 1):
+        super().__init__(observation_space, features_dim * members)
         self.use_proprio = use_proprio
+        if members > 1:  # an ensemble: ``members`` independent extractors side by side (module docstring)
+            self.members = nn.ModuleList(LatentExtractor(observation_space, features_dim, use_proprio, dropout)
+                                         for _ in range(members))
+            return
         bits, h, w = observation_space["codes"].shape
         self.cnn = nn.Sequential(
             nn.Conv2d(bits, 64, 3, padding=1), nn.GELU(),
@@ -53,9 +57,41 @@ class LatentExtractor(BaseFeaturesExtractor):
         self.proj = nn.Sequential(nn.Linear(cnn_out + 128, features_dim), nn.GELU())
 
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        if hasattr(self, "members"):
+            return torch.cat([m(obs) for m in self.members], 1)  # (B, members * F)
         proprio = obs["proprio"] if self.use_proprio else torch.zeros_like(obs["proprio"])
         parts = [self.cnn(obs["codes"]), self.proprio(proprio), self.text(obs["instruction"])]
         return self.proj(torch.cat(parts, 1))  # (B, F)
+
+
+class MemberMlpExtractor(nn.Module):
+    """``members`` of SB3's ``MlpExtractor`` side by side: member k's actor and critic MLPs read the k-th
+    block of the features (B, members * F) and their latents are concatenated (B, members * width).
+    ``policy_net`` and ``value_net`` are the members' MLPs in order (the names SB3's extractor uses, so
+    the code that tells the critic's parameters from the actor's by name reads them the same way)."""
+
+    def __init__(self, feature_dim: int, net_arch, activation_fn, members: int, device="auto"):
+        super().__init__()
+        from stable_baselines3.common.torch_layers import MlpExtractor
+
+        if feature_dim % members:
+            raise ValueError(f"{feature_dim} features do not split into {members} members")
+        one = [MlpExtractor(feature_dim // members, net_arch, activation_fn, device) for _ in range(members)]
+        self.policy_net = nn.ModuleList(m.policy_net for m in one)
+        self.value_net = nn.ModuleList(m.value_net for m in one)
+        self.latent_dim_pi = members * one[0].latent_dim_pi
+        self.latent_dim_vf = members * one[0].latent_dim_vf
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.forward_actor(features), self.forward_critic(features)
+
+    def forward_actor(self, features: torch.Tensor) -> torch.Tensor:
+        chunks = features.chunk(len(self.policy_net), dim=1)
+        return torch.cat([net(c) for net, c in zip(self.policy_net, chunks)], 1)
+
+    def forward_critic(self, features: torch.Tensor) -> torch.Tensor:
+        chunks = features.chunk(len(self.value_net), dim=1)
+        return torch.cat([net(c) for net, c in zip(self.value_net, chunks)], 1)
 
 
 class Affine(nn.Module):
@@ -78,9 +114,16 @@ class TaskPolicy(MultiInputActorCriticPolicy):
     Every other argument is ``MultiInputActorCriticPolicy``'s.
     """
 
-    def __init__(self, *args, action_loc=(0.0,) * 7, action_scale=(1.0,) * 7, **kwargs):
+    def __init__(self, *args, action_loc=(0.0,) * 7, action_scale=(1.0,) * 7, members: int = 1, **kwargs):
         self.action_loc, self.action_scale = [float(v) for v in action_loc], [float(v) for v in action_scale]
+        self.members = int(members)
         super().__init__(*args, **kwargs)
+
+    def _build_mlp_extractor(self) -> None:
+        if self.members == 1:
+            return super()._build_mlp_extractor()
+        self.mlp_extractor = MemberMlpExtractor(self.features_dim, self.net_arch, self.activation_fn, self.members,
+                                                self.device)
 
     def _build(self, lr_schedule) -> None:
         super()._build(lr_schedule)
@@ -91,7 +134,7 @@ class TaskPolicy(MultiInputActorCriticPolicy):
         # separate actor / critic extractors comes back with ONE shared extractor that load_state_dict fills
         # last with the critic's weights, so the actor silently runs on untrained features
         return {**super()._get_constructor_parameters(), "action_loc": self.action_loc, "action_scale": self.action_scale,
-                "share_features_extractor": self.share_features_extractor}
+                "share_features_extractor": self.share_features_extractor, "members": self.members}
 
     def mean_action(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         """The Gaussian's mean (B, 7) in action units, through the actor only."""
@@ -107,13 +150,53 @@ class TaskPolicy(MultiInputActorCriticPolicy):
 
 def policy_kwargs(action_loc, action_scale, *, features_dim: int = 256, net_arch: int = 256,
                   share_features: bool = False, log_std_init: float = -1.0, use_proprio: bool = True,
-                  dropout: float = 0.0) -> dict:
-    """The constructor arguments that define the network: SFT builds it with these and PPO reuses them."""
-    return dict(features_extractor_class=LatentExtractor,
-                features_extractor_kwargs={"features_dim": features_dim, "use_proprio": use_proprio, "dropout": dropout},
+                  dropout: float = 0.0, members: int = 1) -> dict:
+    """The constructor arguments that define the network: SFT builds it with these and PPO reuses them
+    (``members`` > 1: an ensemble network, ``assemble``)."""
+    fe = {"features_dim": features_dim, "use_proprio": use_proprio, "dropout": dropout}
+    if members > 1:
+        fe["members"] = members
+    return dict(features_extractor_class=LatentExtractor, features_extractor_kwargs=fe,
                 net_arch=dict(pi=[net_arch, net_arch], vf=[net_arch, net_arch]), share_features_extractor=share_features,
                 log_std_init=log_std_init, action_loc=[float(v) for v in action_loc],
-                action_scale=[float(v) for v in action_scale])
+                action_scale=[float(v) for v in action_scale], **({"members": members} if members > 1 else {}))
+
+
+def member_seed(seed: int, k: int) -> int:
+    """The batch-order seed of ensemble member ``k`` of a run seeded ``seed`` (member 0: ``seed`` itself)."""
+    return seed if k == 0 else int(np.random.SeedSequence([seed, k]).generate_state(1)[0])
+
+
+@torch.no_grad()
+def assemble(members: list[TaskPolicy], observation_space: gym.spaces.Dict, kwargs: dict) -> TaskPolicy:
+    """One ``TaskPolicy`` whose mean action is the mean of the ``members``' mean actions, exactly.
+
+    ``kwargs``: ``policy_kwargs(..., members=len(members))``. Member k's extractors and MLPs become block k
+    of the ensemble's (``LatentExtractor`` and ``MemberMlpExtractor`` with ``members``); a linear layer on
+    the concatenated latents is the sum of per-block linear layers, so the action head (and the value
+    head) take the members' weights side by side divided by their number and the mean of their biases.
+    The members must share ``action_loc`` / ``action_scale`` (fitted on the same demonstrations).
+    ``log_std`` is left for the caller (the sft stage sets it from the ensemble's held-out residuals).
+    """
+    k = len(members)
+    if k < 2 or kwargs.get("members") != k:
+        raise ValueError(f"assemble needs 2+ members and policy kwargs built with members={k}")
+    ens = make_policy(observation_space, kwargs).to(members[0].device)
+    extractors = (["features_extractor"] if ens.share_features_extractor
+                  else ["pi_features_extractor", "vf_features_extractor"])
+    for i, m in enumerate(members):
+        if m.action_loc != ens.action_loc or m.action_scale != ens.action_scale:
+            raise ValueError(f"member {i}'s action normalisation differs from the ensemble's")
+        for name in extractors:
+            getattr(ens, name).members[i].load_state_dict(getattr(m, name).state_dict())
+        for net in ("policy_net", "value_net"):
+            getattr(ens.mlp_extractor, net)[i].load_state_dict(getattr(m.mlp_extractor, net).state_dict())
+    for head in ("action_net", "value_net"):
+        layers = [getattr(m, head)[0] if head == "action_net" else getattr(m, head) for m in members]
+        target = getattr(ens, head)[0] if head == "action_net" else getattr(ens, head)
+        target.weight.copy_(torch.cat([layer.weight for layer in layers], 1) / k)  # (out, k * width)
+        target.bias.copy_(torch.stack([layer.bias for layer in layers]).mean(0))
+    return ens.eval()
 
 
 def make_policy(observation_space: gym.spaces.Dict, kwargs: dict, lr: float = 1e-3) -> TaskPolicy:

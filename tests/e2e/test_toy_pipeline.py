@@ -229,6 +229,26 @@ def test_a_policy_reading_both_frames_plays_learns_in_the_world_model_and_is_eva
     assert {r["policy"] for r in results} >= {"sft", "ppo"} and {r["split"] for r in results} >= {"ind", "ood"}
 
 
+def test_an_sft_ensemble_plays_is_fine_tuned_by_ppo_and_is_evaluated(store):
+    """``sft.ensemble=2``: two SFT trainings kept as one network (their mean action), which wm_play's play,
+    PPO in the world model and the evaluation take as they take one policy."""
+    sets = ["--set", "sft.ensemble=2", "--set", "rl.diagnostics=none", "--set", "rl.precision_envs=0",
+            "--set", "evaluate.world_model_figure=false"]
+    acts = actions(cli(store, "run", "--profile", "toy", "--until", "evaluate", *sets))
+    assert all(acts[(s, "ran")] == 1 for s in ("sft", "wm_play", "rl", "evaluate")), acts
+    sft = shown(store, "sft", *sets)
+    info = json.loads((sft / "policy.json").read_text())
+    metrics = json.loads((sft / "metrics.json").read_text())
+    assert info["ensemble"] == 2 and len(metrics["members"]) == 2
+    from stages.sft.policy import POLICY_FILE, load_policy
+
+    for path in (sft / POLICY_FILE, shown(store, "rl", *sets) / "policy.zip"):
+        policy = load_policy(path)
+        assert policy.members == 2 and len(policy.pi_features_extractor.members) == 2, path
+    results = [json.loads(x) for x in (shown(store, "evaluate", *sets) / "results.jsonl").read_text().splitlines()]
+    assert {r["policy"] for r in results} >= {"sft", "ppo"}
+
+
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
     from types import SimpleNamespace
 

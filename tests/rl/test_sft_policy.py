@@ -56,3 +56,45 @@ def test_the_gripper_is_a_decision_executed_by_its_sign():
     a = executed(np.array([[0.3, -2.0, 0.0, 0.0, 0.0, 0.0, 0.2], [0, 0, 0, 0, 0, 0, -0.01], [0, 0, 0, 0, 0, 0, 0.0]]))
     np.testing.assert_array_equal(a[:, 6], [1.0, -1.0, 1.0])
     assert a[0, 1] == -1.0 and a[0, 0] == np.float32(0.3)
+
+
+def _members(space, n: int, loc=(0.1,) * 7, scale=(0.5,) * 7) -> list:
+    out = []
+    for k in range(n):
+        torch.manual_seed(k)
+        out.append(make_policy(space, policy_kwargs(loc, scale, features_dim=32, net_arch=16)).eval())
+    return out
+
+
+def test_an_assembled_ensemble_acts_on_its_members_mean_and_survives_save_and_load(tmp_path):
+    """``sft.ensemble``: one network whose mean action and value are the members' means (to float error),
+    saved and loaded like any policy, its actions executed as one policy's."""
+    from stages.sft.policy import assemble
+
+    space = _space()
+    members = _members(space, 3)
+    ens = assemble(members, space, policy_kwargs([0.1] * 7, [0.5] * 7, features_dim=32, net_arch=16, members=3))
+    obs = {k: torch.as_tensor(v) for k, v in _batch(space, 9).items()}
+    with torch.no_grad():
+        mean = torch.stack([m.mean_action(obs) for m in members]).mean(0)  # (9, 7)
+        value = torch.stack([m.predict_values(obs) for m in members]).mean(0)  # (9, 1)
+        torch.testing.assert_close(ens.mean_action(obs), mean, atol=1e-6, rtol=0)
+        torch.testing.assert_close(ens.predict_values(obs), value, atol=1e-6, rtol=0)
+        assert not torch.allclose(members[0].mean_action(obs), mean, atol=1e-3)  # the members do differ
+    ens.save(str(tmp_path / "e.pt"))
+    loaded = load_policy(tmp_path / "e.pt")
+    assert loaded.members == 3 and len(loaded.pi_features_extractor.members) == 3
+    np.testing.assert_array_equal(act(ens, _batch(space, 4)), act(loaded, _batch(space, 4)))
+
+
+def test_assembling_members_of_other_normalisations_or_a_wrong_count_is_refused():
+    import pytest
+
+    from stages.sft.policy import assemble
+
+    space = _space()
+    kwargs = policy_kwargs([0.1] * 7, [0.5] * 7, features_dim=32, net_arch=16, members=2)
+    with pytest.raises(ValueError, match="normalisation"):
+        assemble(_members(space, 1) + _members(space, 1, scale=(0.4,) * 7), space, kwargs)
+    with pytest.raises(ValueError, match="members=3"):
+        assemble(_members(space, 3), space, kwargs)
