@@ -163,7 +163,8 @@ def clone(recipe, sft_info: dict, observation_space, train: tuple[dict, np.ndarr
     with torch.no_grad():
         policy.log_std.copy_(torch.as_tensor(np.log(noise), dtype=torch.float32))
     info = {**sft_info, "action_loc": np.asarray(loc).tolist(), "action_scale": np.asarray(scale).tolist(),
-            "initial_action_std": noise.tolist(), "policy_kwargs": kwargs}
+            "initial_action_std": noise.tolist(), "policy_kwargs": kwargs,
+            "ensemble": policy.members}  # a fresh network is one policy whatever the SFT artifact's ensemble
     facts = {"epochs": hist["epochs_run"], "loss_val_last": hist["val"][-1] if hist["val"] else None,
              "loss_val_best": min(hist["val"]) if hist["val"] else None, "best_epoch": hist["best_epoch"],
              "val_r2": held["r2"], "fit_seconds": time.perf_counter() - t0}
