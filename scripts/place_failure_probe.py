@@ -26,9 +26,9 @@ the object may carry it to the wrong place. Where the policy first commands the 
 keeps the policy step, ``close_step``, the gripper's distance to the object, ``close_reach_cm``, and
 its height above the object's centre, ``close_above_cm`` (None if it never closes): a grasp missed
 by a centimetre, a grasp closed in the air, and no grasp tried look alike in the phase counts.
-``--hide carpet`` / ``--hide container`` move that actor 20 cm under the table at every reset, after the layout is drawn (same states; the target's xy is
-kept, so success is still judged against it): the policy then acts on a scene without it, to ask
-whether what it sees there is what breaks the grasp.
+``--hide carpet`` / ``--hide container`` move that actor 20 cm under the table at every reset, after
+the layout is drawn (same states; the target's xy is kept, so success is still judged against it):
+the policy then acts on a scene without it, to ask whether what it sees there is what breaks the grasp.
 """
 from __future__ import annotations
 
