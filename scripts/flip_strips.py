@@ -8,11 +8,12 @@ lost (``--per-way`` each way, spread over tasks), runs both policies there again
 saves, per state, one image with the method's third-view frames above the baseline's.
 
     PYTHONPATH=. .venv/bin/python scripts/flip_strips.py <collect> <tokenize> <sft> \\
-        --method FILE [--method-rl RL_DIR] --baseline FILE [--baseline-rl RL_DIR] \\
-        [--seed 1] [--per-way 3] [--same 0] [--out DIR] [--jobs 2]
+        --method FILE [--method-rl RL_DIR] [--method-sft SFT_DIR] --baseline FILE [--baseline-rl RL_DIR] \\
+        [--baseline-sft SFT_DIR] [--seed 1] [--per-way 3] [--same 0] [--out DIR] [--jobs 2]
 
 A file of PPO episodes (its rows' ``policy`` is ``ppo``) needs its rl artifact (``--method-rl`` /
-``--baseline-rl``); SFT episodes use the ``sft`` artifact. ``--seed`` is the files' evaluate_sft.py
+``--baseline-rl``); SFT episodes use the ``sft`` artifact, or the side's own (``--method-sft`` /
+``--baseline-sft``) when the two sides are different SFT trainings (e.g. an ensemble and one member). ``--seed`` is the files' evaluate_sft.py
 ``--seed``. ``--same N`` adds N states both policies won and N both lost (a look at the ordinary).
 Every episode is run again from its own seed (every reset rebuilds the scene), so the rerun's outcome
 should be the file's: the script prints how many reproduced and names any that did not.
@@ -64,14 +65,15 @@ def pick(method: list[dict], baseline: list[dict], per_way: int, same: int) -> d
     return out
 
 
-def jobs_for(states: list[tuple], label: str, policy_dir: Path | None, args, counts: dict) -> list:
-    """The evaluate stage's jobs for one policy, cut down to ``states`` (each recorded)."""
+def jobs_for(states: list[tuple], label: str, policy_dir: Path | None, sft: Path, args, counts: dict) -> list:
+    """The evaluate stage's jobs for one policy (``sft``'s, or ``policy_dir``'s PPO policy), cut down to
+    ``states`` (each recorded)."""
     from stages.evaluate import Config
     from stages.evaluate.jobs import build_jobs
     from stages.sft import read_policy_json
 
-    info = read_policy_json(args.sft)
-    dirs = {"collect": args.collect, "tokenize": args.tokenize, "sft": args.sft, "rl": policy_dir or Path("/nonexistent")}
+    info = read_policy_json(sft)
+    dirs = {"collect": args.collect, "tokenize": args.tokenize, "sft": sft, "rl": policy_dir or Path("/nonexistent")}
     ctx = SimpleNamespace(input=lambda name: dirs[name], device="cpu")
     splits = sorted({s[1] for s in states})
     # the files' own plan (episodes per task and split, seed), so every scene the files used has a job
@@ -99,8 +101,10 @@ def main() -> None:
         ap.add_argument(name, type=Path)
     ap.add_argument("--method", type=Path, required=True, help="the method's per-episode file")
     ap.add_argument("--method-rl", type=Path, default=None, help="its rl artifact (when its episodes are PPO's)")
+    ap.add_argument("--method-sft", type=Path, default=None, help="its own sft artifact (default: the positional one)")
     ap.add_argument("--baseline", type=Path, required=True, help="the baseline's per-episode file")
     ap.add_argument("--baseline-rl", type=Path, default=None, help="its rl artifact (when its episodes are PPO's)")
+    ap.add_argument("--baseline-sft", type=Path, default=None, help="its own sft artifact (default: the positional one)")
     ap.add_argument("--seed", type=int, default=1, help="the files' evaluate_sft.py --seed")
     ap.add_argument("--per-way", type=int, default=3, help="states the method gained, and as many it lost")
     ap.add_argument("--same", type=int, default=0, help="also this many states both won and both lost")
@@ -113,7 +117,8 @@ def main() -> None:
         raise SystemExit("--per-way and --same must be >= 0, --frames >= 2")
 
     sides = {}
-    for side, path, rl in (("method", args.method, args.method_rl), ("baseline", args.baseline, args.baseline_rl)):
+    for side, path, rl, sft in (("method", args.method, args.method_rl, args.method_sft),
+                                ("baseline", args.baseline, args.baseline_rl, args.baseline_sft)):
         rows = episodes(path)
         label = rows[0]["policy"]
         if label not in ("sft", "ppo"):
@@ -123,7 +128,8 @@ def main() -> None:
         counts: dict[tuple, int] = {}
         for r in rows:
             counts[(r["task"], r["split"])] = counts.get((r["task"], r["split"]), 0) + 1
-        sides[side] = SimpleNamespace(path=path, rows=rows, label=label, rl=rl if label == "ppo" else None, counts=counts)
+        sides[side] = SimpleNamespace(path=path, rows=rows, label=label, rl=rl if label == "ppo" else None,
+                                      sft=sft or args.sft, counts=counts)
     chosen = pick(sides["method"].rows, sides["baseline"].rows, args.per_way, args.same)
     states = [s for kind in KINDS for s in chosen[kind]]
     print(", ".join(f"{kind} {len(chosen[kind])}" for kind in KINDS) + f" states of {args.method.name} vs {args.baseline.name}")
@@ -133,7 +139,7 @@ def main() -> None:
 
     from stages.evaluate.episodes import run_job
 
-    jobs = {side: jobs_for(states, s.label, s.rl, args, s.counts) for side, s in sides.items()}
+    jobs = {side: jobs_for(states, s.label, s.rl, s.sft, args, s.counts) for side, s in sides.items()}
     rerun: dict[tuple, dict] = {}
     with mp.get_context("spawn").Pool(args.jobs) as pool:
         for side in sides:

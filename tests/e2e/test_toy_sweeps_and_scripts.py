@@ -63,12 +63,14 @@ def test_a_sweeps_policies_are_evaluated_on_fresh_states_into_files_the_table_pa
     again = subprocess.run(driver, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0 and "[1/" not in again.stdout and again.stdout.count("done ") == 2, again.stdout
 
-    # the states the two policies disagree on (at toy scale mostly agree on), looked at: both rerun there
+    # the states the two policies disagree on (at toy scale mostly agree on), looked at: both rerun there;
+    # each side given its own sft artifact (as for an ensemble against one member), so the positional one
+    # is never read
     line = next(x.split() for x in first.stdout.splitlines() if "evaluate_sft.py" in x and "--rl" in x)
-    flips = subprocess.run([sys.executable, str(REPO / "scripts" / "flip_strips.py"), *line[1:4],
+    flips = subprocess.run([sys.executable, str(REPO / "scripts" / "flip_strips.py"), *line[1:3], str(tmp_path / "no-such-sft"),
                             "--method", str(episodes_file(tmp_path, "rewards-wm", 0, "ood", "toy")),
-                            "--method-rl", line[line.index("--rl") + 1],
-                            "--baseline", str(episodes_file(tmp_path, "sft", 0, "ood", "toy")),
+                            "--method-rl", line[line.index("--rl") + 1], "--method-sft", line[3],
+                            "--baseline", str(episodes_file(tmp_path, "sft", 0, "ood", "toy")), "--baseline-sft", line[3],
                             "--per-way", "1", "--same", "1", "--max-steps", "5", "--jobs", "1", "--out", str(tmp_path / "strips")],
                            cwd=REPO, capture_output=True, text=True, timeout=900)
     assert flips.returncode == 0, flips.stdout + flips.stderr[-4000:]
