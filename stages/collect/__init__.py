@@ -75,6 +75,9 @@ class Config(BaseModel):
     grasp_miss_per_scene: int = Field(1, ge=0, description="grasp-miss failures per scene and task (IND and OOD): the "
                                       "gripper closes / slides beside the object; labelled negatives of the world model, "
                                       "never demonstrations (plans.grasp_miss_plan)")
+    recover_per_scene: int = Field(0, ge=0, description="recovery demonstrations per IND scene and task: the plan "
+                                   "first closes / comes down in the wrong place, then recovers and succeeds "
+                                   "(plans.recover_plan); used by SFT only where sft.kinds names 'recover'")
     keep_failed: bool = Field(False, description="also write episodes whose execution did not succeed")
     replay_fraction: float = Field(0.1, ge=0, le=1, description="fraction of successful optimal episodes replayed open-loop to verify actions")
     episodes_per_shard: int = Field(8, ge=1, description="episodes per MCAP shard (one worker task)")
@@ -88,6 +91,9 @@ def scene_catalog(cfg: Config):
                          ood_pairs=cfg.ood_pairs, split_seed=cfg.split_seed)
 
 
+RECOVER_SEED_OFFSET = 5_000_000  # recovery episodes' seeds: cfg.seed * 10**7 + this + their count (retries stay below 10**7)
+
+
 def plan_jobs(cfg: Config, scenes, shard_dir) -> list[dict]:
     """Shard jobs: every (task, scene, kind, index) episode with its seed, grouped by task."""
     rng = np.random.default_rng(cfg.seed)
@@ -96,7 +102,7 @@ def plan_jobs(cfg: Config, scenes, shard_dir) -> list[dict]:
     ind = [ind[i] for i in rng.permutation(len(ind))][: cfg.ind_scenes or len(ind)]
     ood = [ood[i] for i in rng.permutation(len(ood))][: cfg.ood_scenes]
     jobs = []
-    n = 0
+    n = n_recover = 0
     for task in cfg.tasks:
         episodes = []
         for scene, n_opt in [(s, cfg.optimal_per_scene) for s in ind] + [(s, cfg.ood_optimal_per_scene) for s in ood]:
@@ -109,6 +115,13 @@ def plan_jobs(cfg: Config, scenes, shard_dir) -> list[dict]:
                     seed=int(cfg.seed * 10**7 + n), replay=bool(kind == "optimal" and rng.random() < cfg.replay_fraction),
                 ))
                 n += 1
+            for j in range(cfg.recover_per_scene if scene.split == "ind" else 0):
+                # seeds of their own range: every other episode is the one the config without them plans
+                episodes.append(dict(
+                    episode_id=f"{task}.{scene.scene_id}.recover.{len(kinds) + j}", scene=scene.to_dict(), kind="recover",
+                    seed=int(cfg.seed * 10**7 + RECOVER_SEED_OFFSET + n_recover), replay=False,
+                ))
+                n_recover += 1
         for k in range(0, len(episodes), cfg.episodes_per_shard):
             name = f"{task}-{k // cfg.episodes_per_shard:04d}.mcap"
             jobs.append(dict(

@@ -12,6 +12,15 @@ Suboptimal kinds (paper §4.1), each derived from the optimal plan of the same e
   - ``grasp_disturb``: small pose disturbances (~1-2 cm, ~0.15 rad) just before the grasp / contact
     waypoint and the place waypoint; for push / pull, a sideways wobble (<= 0.9 cm) mid-slide.
 
+One recovery kind (beyond the paper), a demonstration that errs first and then recovers:
+  - ``recover``: pick & place, move to aim: the gripper first closes where SFT policies close by
+    mistake, either in the air 2.5-5 cm above the grasp pose (their early close) or at the grasp
+    height 5-6.5 cm beside the object (``grasp_miss``'s error); then it reopens, rises and completes
+    the optimal plan from the pre-grasp pose. Push, pull: the closed fingers first come down
+    beside the object (``grasp_miss``'s sideways offset, at the contact height), rise and complete
+    the optimal plan from the pre-contact pose. It must succeed like any demonstration; an SFT policy
+    trained on it (``sft.kinds``) has seen what to do after its own typical mistakes.
+
 Two failure kinds (beyond the paper), the world model's negatives, never a demonstration:
   - ``near_miss``: the optimal plan that misses at the end: the object is carried and released
     8-13 cm beside its target (pick & place, move to aim), or the slide stops after 15-60% of its
@@ -32,7 +41,8 @@ from stages.common.proprio import quat_to_matrix
 
 SUBOPTIMAL_KINDS = ("waypoint_noise", "interpolate", "grasp_disturb")
 FAILURE_KINDS = ("near_miss", "grasp_miss")
-KINDS = ("optimal", *SUBOPTIMAL_KINDS, *FAILURE_KINDS)
+RECOVERY_KINDS = ("recover",)
+KINDS = ("optimal", *SUBOPTIMAL_KINDS, *FAILURE_KINDS, *RECOVERY_KINDS)  # an index seeds a kind's rng: append only
 
 
 @dataclass(frozen=True)
@@ -146,6 +156,8 @@ def suboptimal_plan(opt: list, kind: str, rng: np.random.Generator, *, rot_sigma
         return near_miss_plan(opt, rng)
     if kind == "grasp_miss":
         return grasp_miss_plan(opt, rng)
+    if kind == "recover":
+        return recover_plan(opt, rng)
     out: list = []
     prev_pose = None
     for step in opt:
@@ -223,6 +235,37 @@ def grasp_miss_plan(opt: list, rng: np.random.Generator, *, offset: tuple = (0.0
             step = Move(_pose(np.asarray(step.pose[:3]) + shift, step.pose[3:]), label=step.label, role=step.role)
         out.append(step)
     return out
+
+
+def recover_plan(opt: list, rng: np.random.Generator, *, above: tuple = (0.025, 0.05),
+                 offset: tuple = (0.05, 0.065), rise: float = 0.08) -> list:
+    """``opt`` preceded by a mistake and its correction (module docstring, ``recover``).
+
+    The mistake's steps are labelled ``err`` (the moves have role ``err``). A mistake beside the
+    object is approached from ``rise`` metres straight above it, and every correction rises
+    ``rise`` metres straight up from where the mistake ended before it heads back to the pre-grasp /
+    pre-contact pose, so fingers beside the object never sweep through it. Pick & place and move to
+    aim draw the early close (above) or the sideways miss with equal odds.
+    """
+    moves = {s.role: s for s in opt if isinstance(s, Move)}
+    head = opt.index(moves["pre"]) + 1  # the optimal plan up to and including the pre pose
+    target = moves["contact" if "slide" in moves else "grasp"]  # where the mistake is made instead
+    t, q = np.asarray(target.pose[:3]), target.pose[3:]
+    if "slide" in moves:  # push / pull: the closed fingers come down beside the object (world y)
+        wrong = t + [0.0, (1.0 if rng.random() < 0.5 else -1.0) * rng.uniform(*offset), 0.0]
+        mistake = [Move(_pose(wrong + [0, 0, rise], q), label="err", role="err"), Move(_pose(wrong, q), label="err", role="err")]
+    else:  # pick & place, move to aim: a close in the wrong place, then the fingers reopen
+        approach = []
+        if rng.random() < 0.5:  # the early close: in the air above the object, straight down from pre
+            wrong = t + [0.0, 0.0, rng.uniform(*above)]
+        else:  # the sideways miss: across the fingers' closing direction, as grasp_miss_plan does, from above
+            x = quat_to_matrix(q)[:, 0] * [1.0, 1.0, 0.0]  # (3,) the grasp frame's x axis, horizontal
+            wrong = t + (1.0 if rng.random() < 0.5 else -1.0) * rng.uniform(*offset) * x / max(np.linalg.norm(x), 1e-9)
+            approach = [Move(_pose(wrong + [0, 0, rise], q), label="err", role="err")]
+        mistake = [*approach, Move(_pose(wrong, q), label="err", role="err"),
+                   Grip(-1.0, 8, label="err"), Grip(1.0, 6, label="err")]
+    up = Move(_pose(wrong + [0, 0, rise], q), label="err", role="err")
+    return [*opt[:head], *mistake, up, moves["pre"], *opt[head:]]
 
 
 def opt_direction(opt: list) -> float:

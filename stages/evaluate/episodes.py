@@ -28,6 +28,20 @@ class Job:
     frame: str = "current"  # which frame's tokens the policy reads (sft.frame, its policy.json)
 
 
+REST_ACTION = 0.03  # |commanded TCP displacement| (env action units, dims 0-2) below which a policy step is "at rest"
+REST_STEPS = 3  # an episode "came to rest" when its policy commanded rest this many steps running (docs/evaluate.md)
+
+
+def longest_rest(position_commands: np.ndarray) -> int:
+    """The longest run of consecutive policy steps whose commanded TCP displacement (steps, 3) is below
+    ``REST_ACTION``: how long the policy stopped acting. 0 for an episode with no step."""
+    best = run = 0
+    for still in np.linalg.norm(np.asarray(position_commands, dtype=np.float64).reshape(-1, 3), axis=1) < REST_ACTION:
+        run = run + 1 if still else 0
+        best = max(best, run)
+    return best
+
+
 _SIMS: dict = {}  # per worker process: (tokenizer, text, camera, repeat, horizon) -> SimTaskEnv, reused across jobs
 
 
@@ -94,7 +108,8 @@ def run_group(jobs: list[Job]) -> list[list[dict]]:
 
 
 def run_job(job: Job) -> list[dict]:
-    """One result dict per seed: success (the task's own check at any step), steps, optional frames."""
+    """One result dict per seed: success (the task's own check at any step), steps, the longest run of
+    steps the policy commanded rest (``longest_rest``), optional frames."""
     from stages.sft.policy import act
 
     env = _sim_for(job)
@@ -105,15 +120,18 @@ def run_job(job: Job) -> list[dict]:
         for seed in job.seeds:
             env.keep_frames = seed in job.record
             obs, info = env.reset(seed=seed, options={"spec": spec})
-            success, steps = bool(info["success"]), 0
+            success, steps, moves = bool(info["success"]), 0, []
             while not success and steps < job.max_steps:
-                obs, _, terminated, truncated, info = env.step(act(model, {k: v[None] for k, v in obs.items()})[0])
+                action = act(model, {k: v[None] for k, v in obs.items()})[0]  # (7,)
+                moves.append(action[:3])
+                obs, _, terminated, truncated, info = env.step(action)
                 steps += 1
                 success = success or bool(info["success"])
                 if terminated or truncated:
                     break
             res = {"policy": job.policy, "task": job.task, "scene_id": job.scene["scene_id"], "split": job.split,
-                   "seed": seed, "success": success, "steps": steps, "instruction": env.instruction}
+                   "seed": seed, "success": success, "steps": steps, "instruction": env.instruction,
+                   "rest_steps": longest_rest(np.asarray(moves))}
             if env.keep_frames:
                 res["frames"] = np.stack([f[0] for f in env.frames])  # (control steps+1, H, W, 3) third view
             out.append(res)

@@ -6,10 +6,11 @@ import json
 import numpy as np
 import torch
 
+from stages.evaluate.episodes import REST_ACTION, REST_STEPS
 from stages.evaluate.report import (SPLIT_NAMES, html_table, image_section, markdown_table, plot_success_vs_time,
                                     strip_figure, success_table, tally, write_gif, write_report)
 from stages.evaluate.shipped import acceptance_metrics, acceptance_section, read_acceptance, shipped_label
-from stages.evaluate.stats import wilson
+from stages.evaluate.stats import fmt_rate, wilson
 
 METHODS = {
     "rule": "PPO in ManiSkill (rule reward: success alone)",
@@ -60,6 +61,12 @@ def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
     sections = [(table_name, note + "\n\n" + markdown_table(header, body), f"<p>{note}</p>" + html_table(header, body))]
     if acceptance is not None:
         sections.append(("Acceptance test before shipping (rl.accept_episodes)", *acceptance_section(acceptance)))
+    rest = came_to_rest(main)
+    for (policy, split, outcome), (k, n) in sorted(rest.items()):
+        metrics[f"rest/{policy}/{split}/{outcome}"] = k / n
+        metrics[f"rest/{policy}/{split}/{outcome}_n"] = n
+    if rest:
+        sections.append(("How episodes end: came to rest", *rest_section(rest, {p: label for label, p in rows})))
 
     # Fig. 2: success vs training wall time (SFT at 0 s, then each PPO snapshot)
     snaps = json.loads((ctx.input("rl") / "snapshots" / "index.json").read_text()) \
@@ -109,6 +116,30 @@ def write_everything(ctx, cfg, facts: dict, results: list[dict]) -> dict:
         sections.append(("The action world model under extreme actions (Fig. 9)", *image_section([extreme])))
     write_report(out, f"RoboScape-R evaluation: {METHODS[method]}", sections)
     return metrics
+
+
+def came_to_rest(results: list[dict]) -> dict[tuple[str, str, str], tuple[int, int]]:
+    """(policy, split, "failed" | "succeeded") -> (episodes that came to rest, episodes): the policy
+    commanded rest (``episodes.longest_rest``) for ``REST_STEPS`` steps running at least once."""
+    out: dict[tuple[str, str, str], list[int]] = {}
+    for r in results:
+        if "rest_steps" in r:
+            k = out.setdefault((r["policy"], r["split"], "succeeded" if r["success"] else "failed"), [0, 0])
+            k[0] += int(r["rest_steps"] >= REST_STEPS)
+            k[1] += 1
+    return {key: (v[0], v[1]) for key, v in out.items()}
+
+
+def rest_section(rest: dict, labels: dict[str, str]) -> tuple[str, str]:
+    """The report's table of ``came_to_rest``: per policy and split, failed and successful episodes."""
+    keys = sorted({(p, s) for p, s, _ in rest})
+    header = ["method", "split", "failed episodes that came to rest", "successful episodes that came to rest"]
+    cell = lambda key: fmt_rate(*rest[key]) if key in rest else "-"  # noqa: E731
+    body = [[labels.get(p, p), SPLIT_NAMES[s], cell((p, s, "failed")), cell((p, s, "succeeded"))] for p, s in keys]
+    note = (f"An episode came to rest when the policy commanded a TCP displacement below {REST_ACTION} (action "
+            f"units) for {REST_STEPS} policy steps running: it stopped acting. A failure that came to rest is a "
+            "policy stuck where its demonstrations do not continue from, not one that wandered off.")
+    return note + "\n\n" + markdown_table(header, body), f"<p>{note}</p>" + html_table(header, body)
 
 
 @torch.no_grad()

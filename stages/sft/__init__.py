@@ -40,7 +40,7 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from stages.collect.plans import SUBOPTIMAL_KINDS
+from stages.collect.plans import RECOVERY_KINDS, SUBOPTIMAL_KINDS
 from stages.common.curves import Curves
 from stages.collect.tasks import TASKS, Task
 
@@ -59,9 +59,9 @@ class Config(BaseModel):
                          "part of the result')")
     tasks: list[Task] = Field(
         list(TASKS), min_length=1, description="tasks the one policy is cloned on (multi-task when several)")
-    kinds: list[Literal[("optimal", *SUBOPTIMAL_KINDS)]] = Field(
+    kinds: list[Literal[("optimal", *SUBOPTIMAL_KINDS, *RECOVERY_KINDS)]] = Field(
         ["optimal"], min_length=1, description="trajectory kinds used as demonstrations (successful ones only; "
-        "with the suboptimal kinds too, success fell: docs/sft.md)")
+        "with the suboptimal kinds too, success fell: docs/sft.md; 'recover' needs collect.recover_per_scene > 0)")
     frame_skip: int = Field(4, ge=1, description="control steps per policy step; must equal train_wm.frame_skip (rl checks)")
     retime_min_move: float = Field(0.03, ge=0, description="re-time demonstrations: each kept step moves the TCP at "
                                    "least this far (m), 0 = every frame_skip-th frame (stages/sft/data.py)")

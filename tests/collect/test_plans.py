@@ -140,3 +140,53 @@ def test_the_grasp_frame_axes_the_plan_reads():
     q = (half, 0.0, 0.0, half)  # +90 degrees about z: x -> y, y -> -x
     assert np.allclose(quat_to_matrix(q)[:, 0], [0, 1, 0]) and np.allclose(quat_to_matrix(q)[:, 1], [-1, 0, 0])
     assert np.allclose(quat_to_matrix(DOWN)[:, 2], [0, 0, -1])  # 180 degrees about x: z -> -z
+
+
+@pytest.mark.parametrize("task", sorted(LAYOUTS))
+def test_recover_makes_a_mistake_then_completes_the_optimal_plan_from_its_pre_pose(task):
+    opt = optimal_plan(LAYOUTS[task])
+    moves = {m.role: m for m in _moves(opt)}
+    target = np.array(moves["contact" if "slide" in moves else "grasp"].pose[:3])
+    variants = set()
+    for seed in range(12):
+        rec = suboptimal_plan(opt, "recover", np.random.default_rng(seed))
+        head = opt.index(moves["pre"]) + 1
+        assert rec[:head] == opt[:head] and rec[-(len(opt) - head + 1):] == opt[head - 1:]  # the optimal plan, from pre on
+        err = rec[head:len(rec) - (len(opt) - head + 1)]
+        assert err and all(s.label == "err" for s in err)
+        err_moves = [np.array(s.pose[:3]) for s in err if isinstance(s, Move)]
+        low = min(err_moves, key=lambda p: p[2])  # where the mistake is made
+        offset = low - target
+        up = err_moves[-1]
+        assert np.allclose(up, low + [0, 0, 0.08])  # the correction rises straight up first
+        if "slide" in moves:  # push / pull: the closed fingers come down beside the contact, no grip change
+            assert not any(isinstance(s, Grip) for s in err)
+            assert offset[0] == 0.0 and offset[2] == 0.0 and 0.05 - 1e-9 <= abs(offset[1]) <= 0.065 + 1e-9
+            variants.add("beside")
+        else:  # pick: close then reopen, either above the grasp or beside it at its height
+            assert [s.value for s in err if isinstance(s, Grip)] == [-1.0, 1.0]
+            if np.allclose(offset[:2], 0.0):
+                assert 0.025 - 1e-9 <= offset[2] <= 0.05 + 1e-9
+                variants.add("above")
+            else:
+                assert offset[2] == pytest.approx(0.0) and 0.05 - 1e-9 <= np.linalg.norm(offset) <= 0.065 + 1e-9
+                assert np.allclose(err_moves[0], low + [0, 0, 0.08])  # approached from straight above
+                variants.add("beside")
+    assert variants == ({"beside"} if "slide" in moves else {"above", "beside"})
+
+
+def test_recovery_episodes_are_planned_in_ind_scenes_only_and_leave_the_others_unchanged(tmp_path):
+    from stages.collect import Config, plan_jobs, scene_catalog
+
+    def episodes(cfg):
+        return [e for job in plan_jobs(cfg, scene_catalog(cfg), tmp_path) for e in job["episodes"]]
+
+    base = Config(tasks=("push",), ind_scenes=2, ood_scenes=1)
+    plain, with_recovery = episodes(base), episodes(base.model_copy(update={"recover_per_scene": 2}))
+    recover = [e for e in with_recovery if e["kind"] == "recover"]
+    assert not any(e["kind"] == "recover" for e in plain)
+    assert len(recover) == 2 * 2 and {e["scene"]["split"] for e in recover} == {"ind"}
+    # every other episode is the one planned without them: kind, scene, seed, id and replay flag
+    assert [e for e in with_recovery if e["kind"] != "recover"] == plain
+    seeds = [e["seed"] for e in with_recovery]
+    assert len(set(seeds)) == len(seeds)

@@ -72,6 +72,16 @@ def test_suboptimal_executions_differ_from_optimal(sims):
     assert max_dev(subs["grasp_disturb"]) < max_dev(subs["waypoint_noise"])
 
 
+@pytest.mark.parametrize("task", ["pick_place", "push"])
+def test_a_recovery_demonstration_errs_first_and_still_succeeds(sims, task):
+    env, runner, state = sims[task]
+    opt = record_episode(env, runner, state, _scene(task), "optimal", 31)
+    rec = record_episode(env, runner, state, _scene(task), "recover", 31)
+    assert rec.success[-1] and not rec.success[0], f"{task}: the recovery demonstration did not succeed"
+    assert len(rec.action) > len(opt.action)  # the mistake and the way back are extra steps
+    assert np.array_equal(rec.ee_pose[0], opt.ee_pose[0])
+
+
 def test_make_task_env_observation_format():
     env = make_task_env("push", DEFAULT_SCENE, seed=3)
     obs, info = env.reset(seed=3)

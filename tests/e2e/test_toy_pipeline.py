@@ -31,6 +31,9 @@ def test_all_eight_stages_produce_their_artifacts_and_the_report(store):
     metrics = json.loads((ev / "metrics.json").read_text())
     assert any(k.startswith("success/ppo/all/ind") for k in metrics)
     assert any(k.startswith("success/sft/all/ind") for k in metrics)
+    # how each episode ended: its longest run of resting steps, tallied per policy, split and outcome
+    assert all(isinstance(r["rest_steps"], int) and 0 <= r["rest_steps"] <= r["steps"] for r in results)
+    assert any(k.startswith("rest/sft/ind/") for k in metrics) and "came to rest" in report
     rl = json.loads((artifact(store, "rl") / "metrics.json").read_text())
     assert rl["ppo/param_change_relative"] > 0  # PPO changed the policy
     sft = json.loads((artifact(store, "sft") / "metrics.json").read_text())
