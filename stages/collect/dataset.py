@@ -57,13 +57,14 @@ class EpisodeMeta:
     container: str | None
     table: str
     split: str  # ind | ood
-    kind: str  # optimal | waypoint_noise | interpolate | grasp_disturb
+    kind: str  # plans.KINDS: optimal | waypoint_noise | interpolate | grasp_disturb | near_miss | grasp_miss | recover
     seed: int
     success: bool
     length: int  # T, the number of actions
     shard: str  # shard file name under shards/
     start_ns: int = 0  # log time of the episode's first frame in its shard
     end_ns: int = 0  # log time of its last frame (inclusive)
+    demo_from: int = 0  # a recovery episode's first action after its deliberate mistake (plans.recover_plan); 0 otherwise
 
     @staticmethod
     def from_dict(d: dict) -> "EpisodeMeta":

@@ -46,6 +46,7 @@ class Recording:
     reward: np.ndarray
     success: np.ndarray
     obj_pose: np.ndarray
+    demo_from: int = 0  # actions before this belong to a deliberate mistake (plan steps labelled "err"): never imitated
 
 
 def layout_from_env(env) -> Layout:
@@ -122,7 +123,12 @@ class PlanRunner:
         self._record_obs(frames, obs, info)
         gripper = GRIPPER_OPEN
         hold = self._tcp_at_base()
+        demo_from, in_mistake = 0, False
         for step in plan:
+            if step.label == "err":
+                in_mistake = True
+            elif in_mistake:  # the first step after a mistake: the demonstration proper starts here
+                demo_from, in_mistake = len(frames["action"]), False
             if isinstance(step, Grip):
                 gripper = step.value
                 for _ in range(step.steps):
@@ -141,6 +147,7 @@ class PlanRunner:
             action=np.stack(frames["action"]).astype(np.float32), ee_pose=np.stack(frames["ee_pose"]).astype(np.float32),
             qpos=np.stack(frames["qpos"]).astype(np.float32), reward=np.asarray(frames["reward"], np.float32),
             success=np.asarray(frames["success"], bool), obj_pose=np.stack(frames["obj_pose"]).astype(np.float32),
+            demo_from=demo_from,
         )
 
     def _step(self, frames: dict, action: np.ndarray):

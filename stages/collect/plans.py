@@ -14,12 +14,13 @@ Suboptimal kinds (paper §4.1), each derived from the optimal plan of the same e
 
 One recovery kind (beyond the paper), a demonstration that errs first and then recovers:
   - ``recover``: pick & place, move to aim: the gripper first closes where SFT policies close by
-    mistake, either in the air 2.5-5 cm above the grasp pose (their early close) or at the grasp
-    height 5-6.5 cm beside the object (``grasp_miss``'s error); then it reopens, rises and completes
-    the optimal plan from the pre-grasp pose. Push, pull: the closed fingers first come down
-    beside the object (``grasp_miss``'s sideways offset, at the contact height), rise and complete
-    the optimal plan from the pre-contact pose. It must succeed like any demonstration; an SFT policy
-    trained on it (``sft.kinds``) has seen what to do after its own typical mistakes.
+    mistake, either in the air 2.5-5 cm above the grasp pose (their early close; it then reopens
+    and goes on down to the grasp) or at the grasp height 5-6.5 cm beside the object
+    (``grasp_miss``'s error; it then reopens, rises and completes the optimal plan from the
+    pre-grasp pose). Push, pull: the closed fingers first come down beside the object
+    (``grasp_miss``'s sideways offset, at the contact height), rise and complete the optimal plan
+    from the pre-contact pose. It must succeed like any demonstration; SFT (``sft.kinds``) imitates
+    it from the end of the mistake on, so it learns the way back, never the mistake.
 
 Two failure kinds (beyond the paper), the world model's negatives, never a demonstration:
   - ``near_miss``: the optimal plan that misses at the end: the object is carried and released
@@ -241,11 +242,14 @@ def recover_plan(opt: list, rng: np.random.Generator, *, above: tuple = (0.025, 
                  offset: tuple = (0.05, 0.065), rise: float = 0.08) -> list:
     """``opt`` preceded by a mistake and its correction (module docstring, ``recover``).
 
-    The mistake's steps are labelled ``err`` (the moves have role ``err``). A mistake beside the
-    object is approached from ``rise`` metres straight above it, and every correction rises
-    ``rise`` metres straight up from where the mistake ended before it heads back to the pre-grasp /
-    pre-contact pose, so fingers beside the object never sweep through it. Pick & place and move to
-    aim draw the early close (above) or the sideways miss with equal odds.
+    The mistake's steps are labelled ``err`` (moves with role ``err``): the recording starts its
+    demonstration proper after them (``execute.Recording.demo_from``), so SFT imitates the way back
+    (labelled ``recover``) and never the mistake itself. A mistake beside the object is approached
+    from ``rise`` metres straight above it and left ``rise`` metres straight up before the plan
+    returns to the pre-grasp / pre-contact pose, so fingers beside the object never sweep through
+    it; after an early close above the object the fingers reopen and the plan goes on straight down
+    to the grasp. Pick & place and move to aim draw the early close or the sideways miss with equal
+    odds.
     """
     moves = {s.role: s for s in opt if isinstance(s, Move)}
     head = opt.index(moves["pre"]) + 1  # the optimal plan up to and including the pre pose
@@ -254,18 +258,19 @@ def recover_plan(opt: list, rng: np.random.Generator, *, above: tuple = (0.025, 
     if "slide" in moves:  # push / pull: the closed fingers come down beside the object (world y)
         wrong = t + [0.0, (1.0 if rng.random() < 0.5 else -1.0) * rng.uniform(*offset), 0.0]
         mistake = [Move(_pose(wrong + [0, 0, rise], q), label="err", role="err"), Move(_pose(wrong, q), label="err", role="err")]
-    else:  # pick & place, move to aim: a close in the wrong place, then the fingers reopen
-        approach = []
-        if rng.random() < 0.5:  # the early close: in the air above the object, straight down from pre
-            wrong = t + [0.0, 0.0, rng.uniform(*above)]
-        else:  # the sideways miss: across the fingers' closing direction, as grasp_miss_plan does, from above
-            x = quat_to_matrix(q)[:, 0] * [1.0, 1.0, 0.0]  # (3,) the grasp frame's x axis, horizontal
-            wrong = t + (1.0 if rng.random() < 0.5 else -1.0) * rng.uniform(*offset) * x / max(np.linalg.norm(x), 1e-9)
-            approach = [Move(_pose(wrong + [0, 0, rise], q), label="err", role="err")]
-        mistake = [*approach, Move(_pose(wrong, q), label="err", role="err"),
-                   Grip(-1.0, 8, label="err"), Grip(1.0, 6, label="err")]
-    up = Move(_pose(wrong + [0, 0, rise], q), label="err", role="err")
-    return [*opt[:head], *mistake, up, moves["pre"], *opt[head:]]
+        back = [Move(_pose(wrong + [0, 0, rise], q), label="recover", role="recover"), moves["pre"]]
+    elif rng.random() < 0.5:  # pick & place, move to aim: the early close, in the air straight below pre
+        wrong = t + [0.0, 0.0, rng.uniform(*above)]
+        mistake = [Move(_pose(wrong, q), label="err", role="err"), Grip(-1.0, 8, label="err")]
+        back = [Grip(1.0, 6, label="recover")]  # reopen; the grasp pose is straight below
+    else:  # the sideways miss: across the fingers' closing direction, as grasp_miss_plan does, from above
+        x = quat_to_matrix(q)[:, 0] * [1.0, 1.0, 0.0]  # (3,) the grasp frame's x axis, horizontal
+        wrong = t + (1.0 if rng.random() < 0.5 else -1.0) * rng.uniform(*offset) * x / max(np.linalg.norm(x), 1e-9)
+        mistake = [Move(_pose(wrong + [0, 0, rise], q), label="err", role="err"), Move(_pose(wrong, q), label="err", role="err"),
+                   Grip(-1.0, 8, label="err")]
+        back = [Grip(1.0, 6, label="recover"), Move(_pose(wrong + [0, 0, rise], q), label="recover", role="recover"),
+                moves["pre"]]
+    return [*opt[:head], *mistake, *back, *opt[head:]]
 
 
 def opt_direction(opt: list) -> float:

@@ -101,7 +101,7 @@ def collect_shard(job: dict) -> dict:
                 episode_id=ep["episode_id"], task=job["task"], instruction=env.unwrapped.instruction,
                 scene_id=scene["scene_id"], object=scene["object"]["name"], container=scene["container"],
                 table=scene["table"]["name"], split=scene["split"], kind=ep["kind"], seed=int(seed),
-                success=bool(rec.success[-1]), length=int(len(rec.action)),
+                success=bool(rec.success[-1]), length=int(len(rec.action)), demo_from=int(rec.demo_from),
             )
             start, end = writer.write_episode(meta, vars(rec))
             metas.append({**meta, "shard": Path(job["path"]).name, "start_ns": start, "end_ns": end})

@@ -61,18 +61,20 @@ def compose_between(actions: np.ndarray, idx: np.ndarray, frame_skip: int) -> np
 
 def load_demo(ds, store, episode_id: str, frame_skip: int, min_move: float = 0.0, max_gap: int = 12) -> Demo:
     """The episode's kept frames with their proprioception and composed actions: every ``frame_skip``-th
-    (``stages.common.frame_skip``), or re-timed when ``min_move > 0`` (module docstring)."""
+    (``stages.common.frame_skip``), or re-timed when ``min_move > 0`` (module docstring), from its
+    ``demo_from`` control step on (a recovery episode's deliberate mistake is left out)."""
     meta = ds.meta(episode_id)
     states = ds.load_states(episode_id)
     tokens = np.asarray(store.episode(episode_id), dtype=np.int64)
     if len(tokens) != meta.length + 1:
         raise ValueError(f"episode {episode_id}: {len(tokens)} token frames, collect says {meta.length + 1}")
+    s = meta.demo_from  # a recovery episode's mistake (its first s actions) is never imitated
     if min_move > 0:
-        idx = retimed_indices(states["ee_pose"][:, :3], states["action"][:, 6], frame_skip, min_move, max_gap)
+        idx = s + retimed_indices(states["ee_pose"][s:, :3], states["action"][s:, 6], frame_skip, min_move, max_gap)
         actions = compose_between(states["action"], idx, frame_skip)
     else:
-        idx = frame_indices(meta.length, frame_skip)
-        actions = compose_actions(states["action"], frame_skip)
+        idx = s + frame_indices(meta.length - s, frame_skip)
+        actions = compose_actions(states["action"][s:], frame_skip)
     obj = states["obj_pose"][idx, :3] if "obj_pose" in states else None
     return Demo(episode_id, meta.instruction, tokens[idx], proprio_from_state(states["ee_pose"][idx], states["qpos"][idx]),
                 actions, obj)

@@ -143,34 +143,39 @@ def test_the_grasp_frame_axes_the_plan_reads():
 
 
 @pytest.mark.parametrize("task", sorted(LAYOUTS))
-def test_recover_makes_a_mistake_then_completes_the_optimal_plan_from_its_pre_pose(task):
+def test_recover_makes_a_mistake_then_completes_the_optimal_plan(task):
     opt = optimal_plan(LAYOUTS[task])
     moves = {m.role: m for m in _moves(opt)}
+    head = opt.index(moves["pre"]) + 1
     target = np.array(moves["contact" if "slide" in moves else "grasp"].pose[:3])
     variants = set()
     for seed in range(12):
         rec = suboptimal_plan(opt, "recover", np.random.default_rng(seed))
-        head = opt.index(moves["pre"]) + 1
-        assert rec[:head] == opt[:head] and rec[-(len(opt) - head + 1):] == opt[head - 1:]  # the optimal plan, from pre on
-        err = rec[head:len(rec) - (len(opt) - head + 1)]
-        assert err and all(s.label == "err" for s in err)
-        err_moves = [np.array(s.pose[:3]) for s in err if isinstance(s, Move)]
-        low = min(err_moves, key=lambda p: p[2])  # where the mistake is made
+        assert rec[:head] == opt[:head] and rec[-(len(opt) - head):] == opt[head:]  # the optimal plan around it
+        middle = rec[head:len(rec) - (len(opt) - head)]
+        labels = [s.label for s in middle]
+        n_err = labels.count("err")
+        assert n_err and labels[:n_err] == ["err"] * n_err  # the mistake first ...
+        back = middle[n_err:]
+        assert back and all(s.label == "recover" for s in back if not (isinstance(s, Move) and s.role == "pre"))
+        err_moves = [np.array(s.pose[:3]) for s in middle[:n_err] if isinstance(s, Move)]
+        low = err_moves[-1]  # where the mistake is made
         offset = low - target
-        up = err_moves[-1]
-        assert np.allclose(up, low + [0, 0, 0.08])  # the correction rises straight up first
+        grips = [(s.label, s.value) for s in middle if isinstance(s, Grip)]
         if "slide" in moves:  # push / pull: the closed fingers come down beside the contact, no grip change
-            assert not any(isinstance(s, Grip) for s in err)
-            assert offset[0] == 0.0 and offset[2] == 0.0 and 0.05 - 1e-9 <= abs(offset[1]) <= 0.065 + 1e-9
+            assert not grips and offset[0] == 0.0 and offset[2] == 0.0 and 0.05 - 1e-9 <= abs(offset[1]) <= 0.065 + 1e-9
+            assert np.allclose(err_moves[0], low + [0, 0, 0.08])  # approached from straight above
+            assert np.allclose(back[0].pose[:3], low + [0, 0, 0.08]) and back[-1] == moves["pre"]  # up, then pre
             variants.add("beside")
-        else:  # pick: close then reopen, either above the grasp or beside it at its height
-            assert [s.value for s in err if isinstance(s, Grip)] == [-1.0, 1.0]
-            if np.allclose(offset[:2], 0.0):
-                assert 0.025 - 1e-9 <= offset[2] <= 0.05 + 1e-9
+        else:  # pick: close where it should not, then reopen first of all
+            assert grips == [("err", -1.0), ("recover", 1.0)] and isinstance(back[0], Grip)
+            if np.allclose(offset[:2], 0.0):  # early close above the grasp, then straight on down to it
+                assert 0.025 - 1e-9 <= offset[2] <= 0.05 + 1e-9 and len(back) == 1
                 variants.add("above")
-            else:
+            else:  # beside the object at its height, approached and left straight above
                 assert offset[2] == pytest.approx(0.0) and 0.05 - 1e-9 <= np.linalg.norm(offset) <= 0.065 + 1e-9
-                assert np.allclose(err_moves[0], low + [0, 0, 0.08])  # approached from straight above
+                assert np.allclose(err_moves[0], low + [0, 0, 0.08])
+                assert np.allclose(back[1].pose[:3], low + [0, 0, 0.08]) and back[-1] == moves["pre"]
                 variants.add("beside")
     assert variants == ({"beside"} if "slide" in moves else {"above", "beside"})
 

@@ -80,6 +80,12 @@ def test_a_recovery_demonstration_errs_first_and_still_succeeds(sims, task):
     assert rec.success[-1] and not rec.success[0], f"{task}: the recovery demonstration did not succeed"
     assert len(rec.action) > len(opt.action)  # the mistake and the way back are extra steps
     assert np.array_equal(rec.ee_pose[0], opt.ee_pose[0])
+    # the demonstration proper starts where the mistake ends: the object has not moved yet, and for
+    # pick & place the gripper, closed on nothing, is about to reopen
+    assert 0 < rec.demo_from < len(rec.action) and opt.demo_from == 0
+    assert np.abs(rec.obj_pose[rec.demo_from, :3] - rec.obj_pose[0, :3]).max() < 0.005
+    if task == "pick_place":
+        assert rec.action[rec.demo_from - 1, 6] == -1.0 and rec.action[rec.demo_from, 6] == 1.0
 
 
 def test_make_task_env_observation_format():
