@@ -9,13 +9,16 @@ the seeds, and gives both intervals: over the pooled episodes (these policies) a
 (Student-t: what another seed would give).
 
     PYTHONPATH=. .venv/bin/python scripts/fresh_state_table.py [--manifest M] [--figure PNG]
-        [--by-task [--group push+pull=push,pull ...]] [--rates]
+        [--by-task [--group push+pull=push,pull ...]] [--rates] [--rest]
 
 ``--by-task`` adds a second table with the same two intervals per task (every task the episodes hold,
 in the order they first appear) and per ``--group`` of tasks pooled (``NAME=task,task``; repeatable):
 where in the task suite a method gains or loses. ``--rates`` adds the paper's Table 2 layout: each
 compared policy's success rate per split and task, seeds pooled, and over all tasks with its 95%
-Wilson interval (unpaired: the differences are in the tables above).
+Wilson interval (unpaired: the differences are in the tables above). ``--rest`` adds, per compared
+policy and split, the share of its failed episodes that came to rest (the evaluate stage's
+``rest_steps``, docs/evaluate.md) and of its successful ones; files written before episodes carried
+``rest_steps`` give '-'.
 
 File names: ``<stem>_s<seed>_<tag>_<date>.jsonl`` in domain, ``<stem>_ood_s<seed>_<tag>_<date>.jsonl``
 out of domain; each (stem, seed, split) must match exactly one file. A comparison's ``tag`` is one
@@ -209,6 +212,41 @@ def rates(comparisons: list[Comparison], folder: Path) -> list[tuple[str, tuple[
     return out
 
 
+def rest_rates(comparisons: list[Comparison], folder: Path) -> list[tuple[str, tuple[int, ...], dict]]:
+    """(stem, seeds, {(split, "failed" | "succeeded"): (episodes that came to rest, episodes)}) for each
+    comparison's baseline and compared stem, once each, over the episodes that carry ``rest_steps``."""
+    from stages.evaluate.episodes import REST_STEPS
+
+    seen, out = set(), []
+    for c in comparisons:
+        for stem in (c.baseline, c.stem):
+            if (stem, c.seeds, c.splits) in seen:
+                continue
+            seen.add((stem, c.seeds, c.splits))
+            counts: dict[tuple[str, str], list[int]] = {}
+            for seed in c.seeds:
+                for split in c.splits:
+                    for r in episodes(episodes_file(folder, stem, seed, split, c.tag_of(seed))):
+                        if "rest_steps" in r:
+                            k = counts.setdefault((split, "succeeded" if r["success"] else "failed"), [0, 0])
+                            k[0] += r["rest_steps"] >= REST_STEPS
+                            k[1] += 1
+            out.append((stem, c.seeds, {cell: tuple(k) for cell, k in counts.items()}))
+    return out
+
+
+def rest_table(rows: list[tuple[str, tuple[int, ...], dict]]) -> str:
+    """Markdown: per split, the failed and the successful episodes that came to rest (Wilson intervals)."""
+    from stages.evaluate.stats import fmt_rate
+
+    head = [f"{split.upper()} {o} that came to rest" for split in SPLITS for o in ("failed", "succeeded")]
+    lines = ["| policy | seeds | " + " | ".join(head) + " |", "|---|---|" + "---|" * len(head)]
+    for stem, seeds, cells in rows:
+        vals = [fmt_rate(*cells[(split, o)]) if (split, o) in cells else "-" for split in SPLITS for o in ("failed", "succeeded")]
+        lines.append(f"| `{stem}` | {', '.join(map(str, seeds))} | " + " | ".join(vals) + " |")
+    return "\n".join(lines)
+
+
 def rates_table(rows: list[tuple[str, tuple[int, ...], dict]]) -> str:
     """Markdown: success rate per split and task (seeds pooled), and per split over all tasks with its
     95% Wilson interval and episode count; a cell the episodes lack is '-'."""
@@ -276,6 +314,8 @@ def main() -> None:
                     help="with --by-task: also pool these tasks as one row (repeatable)")
     ap.add_argument("--rates", action="store_true",
                     help="also print each compared policy's success rate per split and task (Table 2's layout)")
+    ap.add_argument("--rest", action="store_true",
+                    help="also print each compared policy's share of failed / successful episodes that came to rest")
     args = ap.parse_args()
     if args.group and not args.by_task:
         ap.error("--group needs --by-task")
@@ -290,6 +330,9 @@ def main() -> None:
     if args.rates:
         print()
         print(rates_table(rates(comparisons, folder)))
+    if args.rest:
+        print()
+        print(rest_table(rest_rates(comparisons, folder)))
     if args.figure:
         figure(rows, args.figure)
         print(f"figure: {args.figure}", file=sys.stderr)

@@ -147,3 +147,22 @@ def test_rates_print_each_policys_success_per_task_and_split_once(tmp_path):
     assert body[0].startswith("| `sft` | 0, 1 | 0.25 | 0.25 | **0.25** [") and body[0].endswith("(n = 16) |")
     # meth: every push state, no pull state -> 1.00 / 0.00, 8 of 16 over all
     assert body[1].startswith("| `meth` | 0, 1 | 1.00 | 0.00 | **0.50** [0.28, 0.72] (n = 16) |")
+
+
+def test_rest_prints_the_share_of_failed_and_successful_episodes_that_came_to_rest(tmp_path):
+    def write(name, policy, split, rows):  # rows: (success, rest_steps or None) per state
+        lines = [{"policy": policy, "task": "push", "split": split, "scene_id": "a", "seed": i, "success": ok,
+                  **({} if rest is None else {"rest_steps": rest})} for i, (ok, rest) in enumerate(rows)]
+        (tmp_path / name).write_text("".join(json.dumps(r) + "\n" for r in lines))
+
+    write("sft_s0_m_2026-01-01.jsonl", "sft", "ind", [(False, 3), (False, 2), (True, 0), (True, 5)])
+    write("meth_s0_m_2026-01-02.jsonl", "ppo", "ind", [(False, None), (True, None), (True, None), (True, None)])
+    (tmp_path / "comparisons.json").write_text(json.dumps({"comparisons": [
+        {"label": "meth", "stem": "meth", "baseline": "sft", "seeds": [0], "tag": "m", "splits": ["ind"]}]}))
+    out = _run("--manifest", str(tmp_path / "comparisons.json"), "--rest")
+    assert out.returncode == 0, out.stderr
+    rest = out.stdout.strip().split("\n\n")[-1].splitlines()
+    assert rest[0].startswith("| policy | seeds | IND failed that came to rest | IND succeeded that came to rest |")
+    # sft: 1 of 2 failures rested 3 steps running (2 is too short), 1 of 2 successes; meth's file predates the field
+    assert rest[2].startswith("| `sft` | 0 | 0.50 [") and "(1/2) | 0.50 [" in rest[2]
+    assert rest[3] == "| `meth` | 0 | - | - | - | - |"
