@@ -138,7 +138,7 @@ def rest_section(rest: dict, labels: dict[str, str]) -> tuple[str, str]:
     body = [[labels.get(p, p), SPLIT_NAMES[s], cell((p, s, "failed")), cell((p, s, "succeeded"))] for p, s in keys]
     note = (f"An episode came to rest when the policy commanded a TCP displacement below {REST_ACTION} (action "
             f"units) for {REST_STEPS} policy steps running: it stopped acting. A failure that came to rest is a "
-            "policy stuck where its demonstrations do not continue from, not one that wandered off.")
+            "policy that stopped short of success, not one that wandered off.")
     return note + "\n\n" + markdown_table(header, body), f"<p>{note}</p>" + html_table(header, body)
 
 
