@@ -191,48 +191,42 @@ def task_table(rows: list[tuple[Comparison, str, dict]]) -> str:
     return "\n".join(lines)
 
 
-def rates(comparisons: list[Comparison], folder: Path) -> list[tuple[str, tuple[int, ...], dict]]:
-    """Table 2's layout: (stem, seeds, {(split, task or "all"): (successes, episodes)}) for each
-    comparison's baseline and compared stem, once per (stem, seeds, splits), baselines first."""
-    seen, out = set(), []
+def _policy_episodes(comparisons: list[Comparison], folder: Path):
+    """(stem, seeds, episodes of every seed and split) for each comparison's baseline and compared
+    stem, once per (stem, seeds, splits), baselines first; a file's rows of another split (older
+    files held both) are left out, as ``compare`` leaves them out."""
+    seen = set()
     for c in comparisons:
         for stem in (c.baseline, c.stem):
             if (stem, c.seeds, c.splits) in seen:
                 continue
             seen.add((stem, c.seeds, c.splits))
-            counts: dict[tuple[str, str], list[int]] = {}
-            for seed in c.seeds:
-                for split in c.splits:
-                    for r in episodes(episodes_file(folder, stem, seed, split, c.tag_of(seed))):
-                        for cell in ((split, r["task"]), (split, "all")):
-                            k = counts.setdefault(cell, [0, 0])
-                            k[0] += bool(r["success"])
-                            k[1] += 1
-            out.append((stem, c.seeds, {cell: tuple(k) for cell, k in counts.items()}))
+            yield stem, c.seeds, [r for seed in c.seeds for split in c.splits
+                                  for r in episodes(episodes_file(folder, stem, seed, split, c.tag_of(seed)))
+                                  if r["split"] == split]
+
+
+def rates(comparisons: list[Comparison], folder: Path) -> list[tuple[str, tuple[int, ...], dict]]:
+    """Table 2's layout: (stem, seeds, {(split, task or "all"): (successes, episodes)}) per policy."""
+    out = []
+    for stem, seeds, rows in _policy_episodes(comparisons, folder):
+        counts: dict[tuple[str, str], list[int]] = {}
+        for r in rows:
+            for cell in ((r["split"], r["task"]), (r["split"], "all")):
+                k = counts.setdefault(cell, [0, 0])
+                k[0] += bool(r["success"])
+                k[1] += 1
+        out.append((stem, seeds, {cell: tuple(k) for cell, k in counts.items()}))
     return out
 
 
 def rest_rates(comparisons: list[Comparison], folder: Path) -> list[tuple[str, tuple[int, ...], dict]]:
-    """(stem, seeds, {(split, "failed" | "succeeded"): (episodes that came to rest, episodes)}) for each
-    comparison's baseline and compared stem, once each, over the episodes that carry ``rest_steps``."""
-    from stages.evaluate.episodes import REST_STEPS
+    """(stem, seeds, {(split, "failed" | "succeeded"): (episodes that came to rest, episodes)}) per
+    policy, over the episodes that carry ``rest_steps`` (the evaluate stage's own tally)."""
+    from stages.evaluate.writeup import came_to_rest
 
-    seen, out = set(), []
-    for c in comparisons:
-        for stem in (c.baseline, c.stem):
-            if (stem, c.seeds, c.splits) in seen:
-                continue
-            seen.add((stem, c.seeds, c.splits))
-            counts: dict[tuple[str, str], list[int]] = {}
-            for seed in c.seeds:
-                for split in c.splits:
-                    for r in episodes(episodes_file(folder, stem, seed, split, c.tag_of(seed))):
-                        if "rest_steps" in r:
-                            k = counts.setdefault((split, "succeeded" if r["success"] else "failed"), [0, 0])
-                            k[0] += r["rest_steps"] >= REST_STEPS
-                            k[1] += 1
-            out.append((stem, c.seeds, {cell: tuple(k) for cell, k in counts.items()}))
-    return out
+    return [(stem, seeds, {(split, outcome): k for (_, split, outcome), k in came_to_rest(rows).items()})
+            for stem, seeds, rows in _policy_episodes(comparisons, folder)]
 
 
 def rest_table(rows: list[tuple[str, tuple[int, ...], dict]]) -> str:

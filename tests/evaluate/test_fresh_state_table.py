@@ -166,3 +166,18 @@ def test_rest_prints_the_share_of_failed_and_successful_episodes_that_came_to_re
     # sft: 1 of 2 failures rested 3 steps running (2 is too short), 1 of 2 successes; meth's file predates the field
     assert rest[2].startswith("| `sft` | 0 | 0.50 [") and "(1/2) | 0.50 [" in rest[2]
     assert rest[3] == "| `meth` | 0 | - | - | - | - |"
+
+
+def test_rates_leave_out_a_files_rows_of_another_split(tmp_path):
+    """Older files held both splits in the in-domain file: an IND-only comparison counts its IND rows."""
+    _write(tmp_path, "sft_s0_m_2026-01-01.jsonl", "sft", "ind", {0})
+    with (tmp_path / "sft_s0_m_2026-01-01.jsonl").open("a") as f:  # four OOD rows, all successes
+        f.writelines(json.dumps({"policy": "sft", "task": "push", "split": "ood", "scene_id": "a", "seed": i,
+                                 "success": True}) + "\n" for i in range(4))
+    _write(tmp_path, "meth_s0_m_2026-01-02.jsonl", "ppo", "ind", {0, 1})
+    (tmp_path / "comparisons.json").write_text(json.dumps({"comparisons": [
+        {"label": "meth", "stem": "meth", "baseline": "sft", "seeds": [0], "tag": "m", "splits": ["ind"]}]}))
+    out = _run("--manifest", str(tmp_path / "comparisons.json"), "--rates")
+    assert out.returncode == 0, out.stderr
+    sft = next(line for line in out.stdout.splitlines() if line.startswith("| `sft` |"))
+    assert "(1/4)" not in sft and "**0.25** [" in sft and "(n = 4) | - | - |" in sft
