@@ -1,0 +1,158 @@
+"""Can the planner finish an episode from where the SFT policy stopped?
+
+The SFT policy's failed episodes mostly end with the policy at rest (the evaluate stage's "came to
+rest": commanded |delta position| below ``REST_ACTION`` for ``REST_STEPS`` policy steps running).
+Demonstrations that continue from such states (DAgger with the planner as the expert) exist only if
+the collect stage's planner can act from them. This probe reruns the failed episodes of a
+fresh-state file (``scripts/evaluate_sft.py``; the deterministic policy reproduces them) up to the
+moment the policy comes to rest (or to the episode's end), hands the simulator to the planner
+(``takeover_plan``: the rest of the task planned from the current object and gripper state, as
+``stages.collect.plans`` plans it from a reset) and records whether the planner's continuation
+succeeds, per task.
+
+    PYTHONPATH=. .venv/bin/python scripts/takeover_probe.py COLLECT TOKENIZE SFT --file F --out OUT.jsonl
+        [--per-task 12] [--max-steps 75] [--seed 1]
+
+``--file``: the SFT policy's own fresh-state file (its rows name the states; only failed rows are
+rerun). ``--seed``: the evaluate plan's seed the file was made with (evaluate_sft.py's ``--seed``).
+A rerun appends to ``--out`` and skips the states already there.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from stages.collect.plans import Grip, Layout, optimal_plan  # noqa: E402
+from stages.evaluate.episodes import REST_ACTION, REST_STEPS  # noqa: E402
+
+PLACING = ("pick_place", "move_to_aim")
+
+
+def takeover_plan(lay: Layout, grasped: bool, remaining: float) -> list:
+    """The rest of the task from the current state. ``lay``: read from the current state
+    (``stages.collect.execute.layout_from_env``); ``grasped``: the gripper holds the object;
+    ``remaining``: for push / pull, how far (m, along the slide direction) the object still has to go.
+
+    Placing tasks: holding the object, keep the gripper closed and lift, carry, place, release,
+    retreat (the optimal plan after its grasp); otherwise open the gripper and plan the whole task from the object's current place.
+    Push / pull: the optimal plan with the slide shortened to what remains.
+    """
+    if lay.task in PLACING:
+        plan = optimal_plan(lay)
+        if grasped:  # the runner starts with the gripper open: command it closed before the first move
+            return [Grip(-1.0, 1), *plan[3:]]  # plan[3:]: after pre, grasp and the close
+        return [Grip(1.0, 6), *plan]
+    return optimal_plan(dataclasses.replace(lay, slide_distance=max(float(remaining), 0.0)))
+
+
+def _current(env) -> tuple[Layout, bool, float]:
+    """(layout, grasped, remaining slide) of a ManiSkill task env's current state."""
+    from stages.collect.execute import layout_from_env
+
+    u = env.unwrapped
+    lay = layout_from_env(env)
+    grasped = bool(u.agent.is_grasping(u.obj).reshape(-1)[0])
+    remaining = 0.0
+    if lay.task not in PLACING:
+        goal_x = float(u.goal_xy[0, 0])
+        remaining = lay.direction * (goal_x - float(u.obj.pose.p[0, 0]))
+    return lay, grasped, remaining
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("collect", type=Path)
+    p.add_argument("tokenize", type=Path)
+    p.add_argument("sft", type=Path)
+    p.add_argument("--file", type=Path, required=True, help="the SFT policy's fresh-state file")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--per-task", type=int, default=12, help="failed episodes rerun per task and split")
+    p.add_argument("--max-steps", type=int, default=75, help="the file's --max-steps")
+    p.add_argument("--seed", type=int, default=1, help="the evaluate plan's seed of the file")
+    p.add_argument("--plan-steps", type=int, default=400, help="control steps the planner may use")
+    a = p.parse_args(argv)
+
+    import torch
+
+    torch.set_num_threads(1)
+    from flip_strips import jobs_for, state
+    from fresh_state_table import episodes
+
+    from stages.collect.execute import PlanFailure, PlanRunner
+    from stages.evaluate.episodes import _policy_for, _sim_for, _spec
+    from stages.sft.policy import act
+
+    rows = episodes(a.file)
+    counts: dict = {}
+    for r in rows:
+        counts[(r["task"], r["split"])] = counts.get((r["task"], r["split"]), 0) + 1
+    chosen, per = [], {}
+    for r in rows:
+        k = (r["task"], r["split"])
+        if not r["success"] and per.get(k, 0) < a.per_task:
+            per[k] = per.get(k, 0) + 1
+            chosen.append(state(r))
+    args = SimpleNamespace(collect=a.collect, tokenize=a.tokenize, seed=a.seed, max_steps=a.max_steps)
+    jobs = jobs_for(chosen, "sft", None, a.sft, args, counts)
+    done = set()
+    if a.out.exists():
+        done = {(r["task"], r["scene_id"], r["seed"]) for r in map(json.loads, a.out.read_text().splitlines())}
+    with a.out.open("a") as fh:
+        for n, job in enumerate(jobs):
+            sim, model, spec = _sim_for(job), _policy_for(job), _spec(job)
+            for seed in job.seeds:
+                if (job.task, str(job.scene["scene_id"]), seed) in done:
+                    continue
+                obs, info = sim.reset(seed=seed, options={"spec": spec})
+                success, steps, run = bool(info["success"]), 0, 0
+                while not success and steps < job.max_steps and run < REST_STEPS:
+                    action = act(model, {k: v[None] for k, v in obs.items()})[0]
+                    run = run + 1 if np.linalg.norm(action[:3]) < REST_ACTION else 0
+                    obs, _, success, truncated, info = sim.step(action)
+                    steps += 1
+                    if truncated:
+                        break
+                row = {"task": job.task, "scene_id": str(job.scene["scene_id"]), "split": job.split, "seed": seed,
+                       "policy_steps": steps, "rested": run >= REST_STEPS, "policy_success": bool(success)}
+                if not success:
+                    raw = sim.env.env  # the ManiSkill env under the observation wrapper
+                    lay, grasped, remaining = _current(raw)
+                    base = raw.unwrapped
+                    binfo = base.get_info()
+                    bobs = base.get_obs(binfo, unflattened=True)
+                    row.update(grasped=grasped, remaining=round(remaining, 4))
+                    try:
+                        rec = PlanRunner(raw, a.plan_steps).run(takeover_plan(lay, grasped, remaining), bobs, binfo)
+                        row.update(takeover="success" if rec.success.any() else "failed", control_steps=len(rec.action))
+                    except PlanFailure as err:
+                        row.update(takeover="no_plan", error=str(err))
+                fh.write(json.dumps(row) + "\n")
+                fh.flush()
+            print(f"job {n + 1}/{len(jobs)} {job.task} {job.split}", flush=True)
+    summarize(a.out)
+
+
+def summarize(path: Path) -> None:
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    print("| task | split | rerun | policy succeeded (mismatch) | rested | planner finished | no plan | finished, rested only |")
+    print("|---|---|---|---|---|---|---|---|")
+    for key in sorted({(r["task"], r["split"]) for r in rows}):
+        rs = [r for r in rows if (r["task"], r["split"]) == key]
+        took = [r for r in rs if "takeover" in r]
+        rested = [r for r in took if r["rested"]]
+        ok = sum(r["takeover"] == "success" for r in took)
+        print(f"| {key[0]} | {key[1]} | {len(rs)} | {sum(r['policy_success'] for r in rs)} | {len(rested)} | "
+              f"{ok}/{len(took)} | {sum(r['takeover'] == 'no_plan' for r in took)} | "
+              f"{sum(r['takeover'] == 'success' for r in rested)}/{len(rested)} |")
+
+
+if __name__ == "__main__":
+    main()
