@@ -12,6 +12,7 @@ succeeds, per task.
 
     PYTHONPATH=. .venv/bin/python scripts/takeover_probe.py COLLECT TOKENIZE SFT --file F --out OUT.jsonl
         [--per-task 12] [--max-steps 75] [--seed 1]
+    PYTHONPATH=. .venv/bin/python scripts/takeover_probe.py --summarize OUT.jsonl [OUT2.jsonl ...]
 
 ``--file``: the SFT policy's own fresh-state file (its rows name the states; only failed rows are
 rerun). ``--seed``: the evaluate plan's seed the file was made with (evaluate_sft.py's ``--seed``).
@@ -68,6 +69,9 @@ def _current(env) -> tuple[Layout, bool, float]:
 
 
 def main(argv=None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--summarize"]:
+        return summarize(*map(Path, argv[1:]))
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("collect", type=Path)
     p.add_argument("tokenize", type=Path)
@@ -140,18 +144,27 @@ def main(argv=None) -> None:
     summarize(a.out)
 
 
-def summarize(path: Path) -> None:
-    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+def summarize(*paths: Path) -> None:
+    """Per task and split, then over all rows: how often the planner finished, with Wilson intervals."""
+    from stages.evaluate.stats import wilson
+
+    def share(rs: list[dict]) -> str:
+        k = sum(r["takeover"] == "success" for r in rs)
+        if not rs:
+            return "-"
+        _, lo, hi = wilson(k, len(rs))
+        return f"{k}/{len(rs)} [{lo:.2f}, {hi:.2f}]"
+
+    rows = [json.loads(line) for p in paths for line in p.read_text().splitlines() if line.strip()]
     print("| task | split | rerun | policy succeeded (mismatch) | rested | planner finished | no plan | finished, rested only |")
     print("|---|---|---|---|---|---|---|---|")
-    for key in sorted({(r["task"], r["split"]) for r in rows}):
-        rs = [r for r in rows if (r["task"], r["split"]) == key]
+    keys = sorted({(r["task"], r["split"]) for r in rows})
+    for key in [*keys, ("all", "all")]:
+        rs = [r for r in rows if key == ("all", "all") or (r["task"], r["split"]) == key]
         took = [r for r in rs if "takeover" in r]
         rested = [r for r in took if r["rested"]]
-        ok = sum(r["takeover"] == "success" for r in took)
         print(f"| {key[0]} | {key[1]} | {len(rs)} | {sum(r['policy_success'] for r in rs)} | {len(rested)} | "
-              f"{ok}/{len(took)} | {sum(r['takeover'] == 'no_plan' for r in took)} | "
-              f"{sum(r['takeover'] == 'success' for r in rested)}/{len(rested)} |")
+              f"{share(took)} | {sum(r['takeover'] == 'no_plan' for r in took)} | {share(rested)} |")
 
 
 if __name__ == "__main__":

@@ -39,3 +39,20 @@ def test_a_slide_continues_for_what_remains():
     assert slide(full).pose[0] - slide(part).pose[0] > 0.05
     overshot = takeover_plan(_lay("pull", direction=-1.0), grasped=False, remaining=-0.01)
     assert abs(slide(overshot).pose[0] - next(s for s in overshot if getattr(s, "role", "") == "contact").pose[0]) < 0.02
+
+
+def test_the_summary_pools_files_and_counts_rested_takeovers_apart(tmp_path, capsys):
+    import json
+
+    from takeover_probe import main
+
+    def row(task, split, rested, takeover):
+        return {"task": task, "split": split, "policy_success": False, "rested": rested, "takeover": takeover}
+
+    a, b = tmp_path / "ind.jsonl", tmp_path / "ood.jsonl"
+    a.write_text("\n".join(json.dumps(r) for r in [row("push", "ind", True, "success"), row("push", "ind", False, "no_plan")]))
+    b.write_text(json.dumps(row("pull", "ood", True, "failed")) + "\n")
+    main(["--summarize", str(a), str(b)])
+    out = capsys.readouterr().out
+    assert "| push | ind | 2 | 0 | 1 | 1/2 [" in out and "| 1 | 1/1 [" in out
+    assert "| all | all | 3 | 0 | 2 | 1/3 [" in out and "| 1 | 1/2 [" in out.splitlines()[-1]
