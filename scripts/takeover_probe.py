@@ -6,7 +6,7 @@ Demonstrations that continue from such states (DAgger with the planner as the ex
 the collect stage's planner can act from them. This probe reruns the failed episodes of a
 fresh-state file (``scripts/evaluate_sft.py``; the deterministic policy reproduces them) up to the
 moment the policy comes to rest (or to the episode's end), hands the simulator to the planner
-(``takeover_plan``: the rest of the task planned from the current object and gripper state, as
+(``stages.common.takeover``: the rest of the task planned from the current object and gripper state, as
 ``stages.collect.plans`` plans it from a reset) and records whether the planner's continuation
 succeeds, per task.
 
@@ -21,7 +21,6 @@ A rerun appends to ``--out`` and skips the states already there.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -31,41 +30,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from stages.collect.plans import Grip, Layout, optimal_plan  # noqa: E402
+from stages.common.takeover import take_over  # noqa: E402
 from stages.evaluate.episodes import REST_ACTION, REST_STEPS  # noqa: E402
-
-PLACING = ("pick_place", "move_to_aim")
-
-
-def takeover_plan(lay: Layout, grasped: bool, remaining: float) -> list:
-    """The rest of the task from the current state. ``lay``: read from the current state
-    (``stages.collect.execute.layout_from_env``); ``grasped``: the gripper holds the object;
-    ``remaining``: for push / pull, how far (m, along the slide direction) the object still has to go.
-
-    Placing tasks: holding the object, keep the gripper closed and lift, carry, place, release,
-    retreat (the optimal plan after its grasp); otherwise open the gripper and plan the whole task from the object's current place.
-    Push / pull: the optimal plan with the slide shortened to what remains.
-    """
-    if lay.task in PLACING:
-        plan = optimal_plan(lay)
-        if grasped:  # the runner starts with the gripper open: command it closed before the first move
-            return [Grip(-1.0, 1), *plan[3:]]  # plan[3:]: after pre, grasp and the close
-        return [Grip(1.0, 6), *plan]
-    return optimal_plan(dataclasses.replace(lay, slide_distance=max(float(remaining), 0.0)))
-
-
-def _current(env) -> tuple[Layout, bool, float]:
-    """(layout, grasped, remaining slide) of a ManiSkill task env's current state."""
-    from stages.collect.execute import layout_from_env
-
-    u = env.unwrapped
-    lay = layout_from_env(env)
-    grasped = bool(u.agent.is_grasping(u.obj).reshape(-1)[0])
-    remaining = 0.0
-    if lay.task not in PLACING:
-        goal_x = float(u.goal_xy[0, 0])
-        remaining = lay.direction * (goal_x - float(u.obj.pose.p[0, 0]))
-    return lay, grasped, remaining
 
 
 def main(argv=None) -> None:
@@ -90,7 +56,6 @@ def main(argv=None) -> None:
     from flip_strips import jobs_for, state
     from fresh_state_table import episodes
 
-    from stages.collect.execute import PlanFailure, PlanRunner
     from stages.evaluate.episodes import _policy_for, _sim_for, _spec
     from stages.sft.policy import act
 
@@ -127,17 +92,13 @@ def main(argv=None) -> None:
                 row = {"task": job.task, "scene_id": str(job.scene["scene_id"]), "split": job.split, "seed": seed,
                        "policy_steps": steps, "rested": run >= REST_STEPS, "policy_success": bool(success)}
                 if not success:
-                    raw = sim.env.env  # the ManiSkill env under the observation wrapper
-                    lay, grasped, remaining = _current(raw)
-                    base = raw.unwrapped
-                    binfo = base.get_info()
-                    bobs = base.get_obs(binfo, unflattened=True)
-                    row.update(grasped=grasped, remaining=round(remaining, 4))
-                    try:
-                        rec = PlanRunner(raw, a.plan_steps).run(takeover_plan(lay, grasped, remaining), bobs, binfo)
-                        row.update(takeover="success" if rec.success.any() else "failed", control_steps=len(rec.action))
-                    except PlanFailure as err:
-                        row.update(takeover="no_plan", error=str(err))
+                    took = take_over(sim.env.env, a.plan_steps)  # the ManiSkill env under the observation wrapper
+                    row.update(grasped=took.grasped, remaining=round(took.remaining, 4))
+                    if took.recording is None:
+                        row.update(takeover="no_plan", error=took.error)
+                    else:
+                        row.update(takeover="success" if took.success else "failed",
+                                   control_steps=len(took.recording.action))
                 fh.write(json.dumps(row) + "\n")
                 fh.flush()
             print(f"job {n + 1}/{len(jobs)} {job.task} {job.split}", flush=True)

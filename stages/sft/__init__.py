@@ -90,6 +90,14 @@ class Config(BaseModel):
     ensemble: int = Field(1, ge=1, description="policies trained on the same split, each from its own initialisation "
                           "and batch order; the stage keeps one network acting on their mean action "
                           "(stages.sft.policy.assemble; docs/sft.md, 'An ensemble of trainings')")
+    dagger_rounds: int = Field(0, ge=0, description="DAgger rounds with the planner as the expert (stages/sft/dagger.py; "
+                               "docs/sft.md): the policy acts on IND training environments, the planner finishes its "
+                               "failures from where it stopped, and the policy is trained again on the demonstrations "
+                               "plus those continuations; 0 = off")
+    dagger_episodes: int = Field(256, ge=1, description="policy rollouts per DAgger round, round-robin over the tasks' "
+                                 "IND training environments")
+    dagger_max_steps: int = Field(75, ge=1, description="policy steps of a DAgger rollout before the planner takes over")
+    dagger_plan_steps: int = Field(400, ge=1, description="control steps the planner's continuation may take")
     noise_scale: float = Field(1.0, gt=0, description="PPO's initial action std = noise_scale x held-out residual std")
     noise_floor: float = Field(0.02, gt=0, description="lower bound of the initial action std (action units)")
 
@@ -149,33 +157,44 @@ def run(ctx) -> None:
             bar.update(1)
     train = pairs([demos[i] for i in train_ids], obs_fn)
     val = pairs([demos[i] for i in val_ids], obs_fn) if val_ids else None
-    if cfg.normalize_actions:
-        loc, scale = train[1].mean(0), np.maximum(train[1].std(0), 1e-3)
-    else:
-        loc, scale = np.zeros(7, np.float32), np.ones(7, np.float32)
-    kwargs = policy_kwargs(loc, scale, features_dim=cfg.features_dim, net_arch=cfg.net_arch, use_proprio=cfg.use_proprio,
-                           dropout=cfg.dropout)
     weights = dim_weights(cfg.gripper_weight, cfg.rotation_weight)
     ctx.log.info("sft: %d train / %d held-out demonstrations (%d / %d pairs), tasks %s, kinds %s",
                  len(train_ids), len(val_ids), len(train[1]), 0 if val is None else len(val[1]), cfg.tasks, cfg.kinds)
-    t_fit = time.perf_counter()
-    members, hists, member_held = [], [], []
-    for k in range(cfg.ensemble):  # member 0 is the policy a run without an ensemble trains
-        policy = make_policy(obs_fn.space, kwargs, cfg.lr).to(ctx.device)  # initialised from the run's RNG, in turn
-        desc = "sft: epochs" if cfg.ensemble == 1 else f"sft: member {k + 1}/{cfg.ensemble}, epochs"
-        with ctx.progress(cfg.epochs, desc, unit="epoch") as bar:
-            hists.append(behaviour_clone(policy, train, val, epochs=cfg.epochs, lr=cfg.lr, weight_decay=cfg.weight_decay,
-                                         batch_size=cfg.batch_size, patience=cfg.patience, weights=weights,
-                                         seed=member_seed(cfg.seed, k), keep=cfg.keep, progress=bar))
-        members.append(policy)
-        if cfg.ensemble > 1:
-            member_held.append(evaluate_pairs(policy, val if val is not None else train, weights))
-    hist = hists[0]
-    if cfg.ensemble > 1:
+
+    def fit(train: tuple, label: str):
+        """(policy, kwargs, member 0's history, the members' held-out scores, seconds) trained on ``train``."""
+        if cfg.normalize_actions:
+            loc, scale = train[1].mean(0), np.maximum(train[1].std(0), 1e-3)
+        else:
+            loc, scale = np.zeros(7, np.float32), np.ones(7, np.float32)
         kwargs = policy_kwargs(loc, scale, features_dim=cfg.features_dim, net_arch=cfg.net_arch,
-                               use_proprio=cfg.use_proprio, dropout=cfg.dropout, members=cfg.ensemble)
-        policy = assemble(members, obs_fn.space, kwargs)
-    fit_seconds = time.perf_counter() - t_fit
+                               use_proprio=cfg.use_proprio, dropout=cfg.dropout)
+        t_fit = time.perf_counter()
+        members, hists, member_held = [], [], []
+        for k in range(cfg.ensemble):  # member 0 is the policy a run without an ensemble trains
+            policy = make_policy(obs_fn.space, kwargs, cfg.lr).to(ctx.device)  # initialised from the run's RNG, in turn
+            desc = f"sft{label}: epochs" if cfg.ensemble == 1 else f"sft{label}: member {k + 1}/{cfg.ensemble}, epochs"
+            with ctx.progress(cfg.epochs, desc, unit="epoch") as bar:
+                hists.append(behaviour_clone(policy, train, val, epochs=cfg.epochs, lr=cfg.lr,
+                                             weight_decay=cfg.weight_decay, batch_size=cfg.batch_size,
+                                             patience=cfg.patience, weights=weights, seed=member_seed(cfg.seed, k),
+                                             keep=cfg.keep, progress=bar))
+            members.append(policy)
+            if cfg.ensemble > 1:
+                member_held.append(evaluate_pairs(policy, val if val is not None else train, weights))
+        if cfg.ensemble > 1:
+            kwargs = policy_kwargs(loc, scale, features_dim=cfg.features_dim, net_arch=cfg.net_arch,
+                                   use_proprio=cfg.use_proprio, dropout=cfg.dropout, members=cfg.ensemble)
+            policy = assemble(members, obs_fn.space, kwargs)
+        return policy, kwargs, hists, member_held, time.perf_counter() - t_fit
+
+    policy, kwargs, hists, member_held, fit_seconds = fit(train, "")
+    dagger_metrics: dict = {}
+    if cfg.dagger_rounds:
+        policy, kwargs, hists, member_held, fit_seconds, train, dagger_metrics = _dagger(
+            ctx, cfg, policy, fit, train, obs_fn, pool)
+    hist = hists[0]
+    loc, scale = np.asarray(kwargs["action_loc"], np.float32), np.asarray(kwargs["action_scale"], np.float32)
     held = evaluate_pairs(policy, val if val is not None else train, weights)
     train_eval = evaluate_pairs(policy, train, weights)
     noise = np.maximum(cfg.noise_scale * np.asarray(held["residual_std"]), cfg.noise_floor)
@@ -213,6 +232,7 @@ def run(ctx) -> None:
         **{f"val/residual_std/{d}": v for d, v in zip(dims, held["residual_std"])},
         "fit_seconds": fit_seconds, "stage_seconds": time.perf_counter() - t0,
     }
+    metrics.update(dagger_metrics)
     if cfg.ensemble > 1:  # the members alone on the same held-out pairs, and their epochs
         metrics["members"] = [{"epochs_run": h["epochs_run"], "best_epoch": h["best_epoch"],
                                "val/loss": m["loss"], "val/gripper_sign_accuracy": m["gripper_sign_accuracy"],
@@ -222,6 +242,80 @@ def run(ctx) -> None:
     ctx.log.info("sft: %d epochs (best %d) in %.0f s; held-out R^2 %s, gripper sign accuracy %.3f",
                  hist["epochs_run"], hist["best_epoch"], fit_seconds,
                  [round(v, 3) for v in held["r2"]], held["gripper_sign_accuracy"])
+
+
+def _dagger(ctx, cfg: Config, policy, fit, train: tuple, obs_fn, pool: set):
+    """``cfg.dagger_rounds`` rounds of ``stages.sft.dagger`` from the cloned ``policy``; each round's
+    demonstrations are a checkpoint (a rerun after a kill rolls out again only the rounds it lacks)
+    and ``dagger.jsonl`` lists every start. Returns ``fit``'s results for the last round's training
+    set, that set, and the metrics."""
+    from stages.common.environments import pick_environments, training_environments
+    from stages.common.sim_env import sim_over
+    from stages.goals.environments import list_environments
+    from stages.sft.dagger import load_round, round_seeds, run_round, save_round, summary
+
+    envs = pick_environments(training_environments(list_environments(ctx.input("collect")), pool, cfg.tasks),
+                             cfg.dagger_episodes)
+    cp = ctx.checkpoints()
+    added, rows_all, metrics = [], [], {}
+    fitted = (policy, *([None] * 4))
+    for r in range(cfg.dagger_rounds):
+        saved = cp.load(f"dagger-round-{r}")
+        if saved is not None:
+            demos, rows = load_round(saved)
+            ctx.log.info("sft: DAgger round %d resumed from its checkpoint (%d demonstrations)", r + 1, len(demos))
+        else:
+            if fitted[0] is None:  # resumed past round r - 1's rollouts: train its policy again
+                torch.manual_seed(_round_seed(cfg.seed, r))
+                fitted = fit(_union(train, added, obs_fn), f" DAgger {r}")
+            sim, specs = sim_over(ctx.input("collect"), obs_fn, envs, max_steps=cfg.dagger_max_steps,
+                                  frame_skip=cfg.frame_skip, seed=cfg.seed)
+            try:
+                with ctx.progress(len(specs), f"sft: DAgger round {r + 1}/{cfg.dagger_rounds}", unit="ep") as bar:
+                    demos, rows = run_round(fitted[0], sim, specs, round_seeds(cfg.seed, r, len(specs)),
+                                            max_steps=cfg.dagger_max_steps, plan_steps=cfg.dagger_plan_steps,
+                                            frame_skip=cfg.frame_skip, min_move=cfg.retime_min_move,
+                                            max_gap=max(cfg.retime_max_gap, cfg.frame_skip), progress=bar)
+            finally:
+                sim.close()
+            with cp.save(f"dagger-round-{r}") as d:
+                save_round(d, demos, rows)
+        added += demos
+        rows_all += [(r, row) for row in rows]
+        counts = summary(rows)
+        metrics.update({f"dagger/round{r + 1}/{k}": v for k, v in counts.items()})
+        ctx.log.info("sft: DAgger round %d: the policy succeeded in %d of %d starts; of its failures %d came to rest, "
+                     "the planner finished %d (%d failed, %d without a plan): %d demonstrations, %d pairs", r + 1,
+                     counts["policy_success"], counts["starts"], counts["rested"], counts["takeover_success"],
+                     counts["takeover_failed"], counts["takeover_no_plan"], len(demos), counts["pairs"])
+        fitted = (None,)  # round r + 1 needs the policy trained on the union so far
+        if r == cfg.dagger_rounds - 1 or cp.load(f"dagger-round-{r + 1}") is None:
+            torch.manual_seed(_round_seed(cfg.seed, r + 1))
+            fitted = fit(_union(train, added, obs_fn), f" DAgger {r + 1}")
+    from dataclasses import asdict
+
+    (ctx.out / "dagger.jsonl").write_text("".join(json.dumps({"round": r + 1, **asdict(row)}) + "\n"
+                                                  for r, row in rows_all))
+    union = _union(train, added, obs_fn)
+    metrics.update({"dagger/demonstrations": len(added), "dagger/pairs": int(sum(len(d.actions) for d in added)),
+                    "pairs/train_collected": int(len(train[1]))})
+    return (*fitted, union, metrics)
+
+
+def _round_seed(seed: int, r: int) -> int:
+    """The torch seed the policy trained after DAgger round ``r`` is initialised from (not the run's
+    RNG, which the simulator may have drawn from)."""
+    return int(np.random.SeedSequence([seed, 7_000 + r]).generate_state(1)[0])
+
+
+def _union(train: tuple, demos: list, obs_fn) -> tuple:
+    """The collected training pairs plus those of ``demos``."""
+    from stages.sft.data import pairs
+
+    if not demos:
+        return train
+    extra = pairs(demos, obs_fn)
+    return {k: np.concatenate([train[0][k], extra[0][k]]) for k in train[0]}, np.concatenate([train[1], extra[1]])
 
 
 def _plot(hist: dict, path: Path) -> None:

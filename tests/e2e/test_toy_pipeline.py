@@ -252,6 +252,28 @@ def test_an_sft_ensemble_plays_is_fine_tuned_by_ppo_and_is_evaluated(store):
     assert {r["policy"] for r in results} >= {"sft", "ppo"}
 
 
+def test_dagger_adds_the_planners_continuations_from_the_policys_own_states(store):
+    """``sft.dagger_rounds=1``: the cloned policy acts on IND training environments, the planner finishes
+    its failures from where it stopped, and the policy is trained again on both (stages.sft.dagger)."""
+    sets = ["--set", "sft.dagger_rounds=1", "--set", "sft.dagger_episodes=2", "--set", "sft.dagger_max_steps=4"]
+    acts = actions(cli(store, "run", "--profile", "toy", "--until", "sft", *sets))
+    assert acts[("sft", "ran")] == 1 and acts[("collect", "cached")] == 1, acts
+    sft = shown(store, "sft", *sets)
+    metrics = json.loads((sft / "metrics.json").read_text())
+    rows = [json.loads(x) for x in (sft / "dagger.jsonl").read_text().splitlines()]
+    assert len(rows) == metrics["dagger/round1/starts"] == 2
+    assert {r["env_id"].split("/")[0] for r in rows} == {"move_to_aim", "pick_place"}  # round-robin over the tasks
+    assert all(r["seed"] >= 6_000_000 for r in rows)  # never an evaluation state
+    failed = [r for r in rows if not r["policy_success"]]
+    assert failed and all(r["policy_steps"] <= 4 for r in rows)  # an untrained toy policy, handed over at step 4 at most
+    finished = [r for r in failed if r["takeover"] == "success"]
+    assert len(finished) == metrics["dagger/demonstrations"] >= 1 and all(r["pairs"] > 0 for r in finished)
+    assert metrics["pairs/train"] == metrics["pairs/train_collected"] + metrics["dagger/pairs"]
+    assert metrics["dagger/pairs"] == sum(r["pairs"] for r in rows)
+    plain = json.loads((shown(store, "sft") / "metrics.json").read_text())
+    assert plain["pairs/train"] == metrics["pairs/train_collected"]  # the same collected demonstrations
+
+
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
     from types import SimpleNamespace
 
