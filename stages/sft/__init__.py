@@ -21,6 +21,8 @@ Outputs:
     split.json           demonstration episodes trained on and held out (early stopping, R^2)
     training.png         train / held-out loss per epoch (also as TensorBoard events in tensorboard/)
     metrics.json         pairs, epochs, best epoch, held-out loss, per-dimension R^2 and residual std
+    dagger.jsonl, dagger_demos/   with ``dagger_rounds``: every DAgger start, and the planner's continuations
+                         trained on beside split.json's demonstrations (``stages.sft.dagger``)
 
 Key includes:
     this config (tasks, kinds, frame skip, recipe, seed) and the keys of collect and tokenize.
@@ -46,6 +48,7 @@ from stages.collect.tasks import TASKS, Task
 
 POLICY_JSON = "policy.json"
 TEXT_EMBEDDINGS = "text_embeddings.json"
+DAGGER_DIR = "dagger_demos"  # the DAgger rounds' demonstrations (stages.sft.dagger.save_demos), trained on beside split.json's
 
 
 class Config(BaseModel):
@@ -252,7 +255,7 @@ def _dagger(ctx, cfg: Config, policy, fit, train: tuple, obs_fn, pool: set):
     from stages.common.environments import pick_environments, training_environments
     from stages.common.sim_env import sim_over
     from stages.goals.environments import list_environments
-    from stages.sft.dagger import load_round, round_seeds, run_round, save_round, summary
+    from stages.sft.dagger import load_round, round_seeds, run_round, save_demos, save_round, summary
 
     envs = pick_environments(training_environments(list_environments(ctx.input("collect")), pool, cfg.tasks),
                              cfg.dagger_episodes)
@@ -296,6 +299,8 @@ def _dagger(ctx, cfg: Config, policy, fit, train: tuple, obs_fn, pool: set):
 
     (ctx.out / "dagger.jsonl").write_text("".join(json.dumps({"round": r + 1, **asdict(row)}) + "\n"
                                                   for r, row in rows_all))
+    (ctx.out / DAGGER_DIR).mkdir()
+    save_demos(ctx.out / DAGGER_DIR, added)  # trained on: rl's demonstration anchor reads them (stages.rl.demonstrations)
     union = _union(train, added, obs_fn)
     metrics.update({"dagger/demonstrations": len(added), "dagger/pairs": int(sum(len(d.actions) for d in added)),
                     "pairs/train_collected": int(len(train[1]))})
@@ -338,4 +343,4 @@ def _plot(hist: dict, path: Path) -> None:
     plt.close(fig)
 
 
-__all__ = ["Config", "run", "read_policy_json", "POLICY_JSON", "TEXT_EMBEDDINGS"]
+__all__ = ["Config", "run", "read_policy_json", "POLICY_JSON", "TEXT_EMBEDDINGS", "DAGGER_DIR"]

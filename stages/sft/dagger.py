@@ -111,25 +111,40 @@ def summary(rows: list[Rollout]) -> dict:
             "pairs": sum(r.pairs for r in rows)}
 
 
-def save_round(path, demos: list[Demo], rows: list[Rollout]) -> None:
-    """One round's demonstrations (``demos.npz``) and rows (``rollouts.jsonl``) into directory ``path``."""
+DEMOS_NPZ, DEMOS_JSON, ROLLOUTS = "demos.npz", "demos.json", "rollouts.jsonl"
+
+
+def save_demos(path, demos: list[Demo]) -> None:
+    """``demos`` into directory ``path`` (``DEMOS_NPZ`` arrays, ``DEMOS_JSON`` ids and instructions)."""
     import json
 
     arrays = {}
     for i, d in enumerate(demos):
         arrays.update({f"{i}/tokens": d.tokens, f"{i}/proprio": d.proprio, f"{i}/actions": d.actions, f"{i}/obj": d.obj_xyz})
-    np.savez(path / "demos.npz", **arrays)
-    (path / "demos.json").write_text(json.dumps([[d.episode_id, d.instruction] for d in demos]) + "\n")
-    (path / "rollouts.jsonl").write_text("".join(json.dumps(asdict(r)) + "\n" for r in rows))
+    np.savez(path / DEMOS_NPZ, **arrays)
+    (path / DEMOS_JSON).write_text(json.dumps([[d.episode_id, d.instruction] for d in demos]) + "\n")
+
+
+def load_demos(path) -> list[Demo]:
+    """``save_demos``'s demonstrations back."""
+    import json
+
+    names = json.loads((path / DEMOS_JSON).read_text())
+    with np.load(path / DEMOS_NPZ) as z:
+        return [Demo(eid, text, z[f"{i}/tokens"], z[f"{i}/proprio"], z[f"{i}/actions"], z[f"{i}/obj"])
+                for i, (eid, text) in enumerate(names)]
+
+
+def save_round(path, demos: list[Demo], rows: list[Rollout]) -> None:
+    """One round's demonstrations and rows (``ROLLOUTS``) into directory ``path`` (its checkpoint)."""
+    import json
+
+    save_demos(path, demos)
+    (path / ROLLOUTS).write_text("".join(json.dumps(asdict(r)) + "\n" for r in rows))
 
 
 def load_round(path) -> tuple[list[Demo], list[Rollout]]:
     """``save_round``'s demonstrations and rows back."""
     import json
 
-    names = json.loads((path / "demos.json").read_text())
-    with np.load(path / "demos.npz") as z:
-        demos = [Demo(eid, text, z[f"{i}/tokens"], z[f"{i}/proprio"], z[f"{i}/actions"], z[f"{i}/obj"])
-                 for i, (eid, text) in enumerate(names)]
-    rows = [Rollout(**json.loads(x)) for x in (path / "rollouts.jsonl").read_text().splitlines()]
-    return demos, rows
+    return load_demos(path), [Rollout(**json.loads(x)) for x in (path / ROLLOUTS).read_text().splitlines()]

@@ -272,6 +272,18 @@ def test_dagger_adds_the_planners_continuations_from_the_policys_own_states(stor
     assert metrics["dagger/pairs"] == sum(r["pairs"] for r in rows)
     plain = json.loads((shown(store, "sft") / "metrics.json").read_text())
     assert plain["pairs/train"] == metrics["pairs/train_collected"]  # the same collected demonstrations
+    # rl's demonstration anchor and filtered BC read what SFT trained on: the continuations included
+    from stages.collect.dataset import Dataset
+    from stages.rl.demonstrations import sft_pairs
+    from stages.sft import TEXT_EMBEDDINGS, read_policy_json
+    from stages.sft.observation import ObservationFn
+    from stages.tokenize.store import TokenStore
+    from stages.tokenize.tokenizer import load_tokenizer
+
+    tok_dir, info = shown(store, "tokenize"), read_policy_json(sft)
+    obs_fn = ObservationFn.for_policy(load_tokenizer(tok_dir), json.loads((sft / TEXT_EMBEDDINGS).read_text()), info)
+    read = sft_pairs(sft, info, Dataset(shown(store, "collect")), TokenStore(tok_dir), obs_fn, "train")
+    assert len(read[1]) == metrics["pairs/train"]
 
 
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
