@@ -67,9 +67,10 @@ def demo_from_recording(rec, tokenizer, episode_id: str, instruction: str, frame
 
 
 def run_round(policy, sim, specs: list, seeds: list[int], *, max_steps: int, plan_steps: int, frame_skip: int,
-              min_move: float, max_gap: int, progress=None) -> tuple[list[Demo], list[Rollout]]:
+              min_move: float, max_gap: int, progress=None, on_takeover=None) -> tuple[list[Demo], list[Rollout]]:
     """One DAgger round over ``specs[i]`` reset with ``seeds[i]`` in ``sim`` (a ``SimTaskEnv`` stepping
-    ``frame_skip`` control steps per action): the new demonstrations and one ``Rollout`` per start."""
+    ``frame_skip`` control steps per action): the new demonstrations and one ``Rollout`` per start.
+    ``on_takeover(row, takeover)``, if given, sees every takeover (``scripts/dagger_strips.py`` draws them)."""
     from stages.common.takeover import take_over
     from stages.evaluate.episodes import REST_ACTION, REST_STEPS
     from stages.sft.policy import act
@@ -96,6 +97,8 @@ def run_round(policy, sim, specs: list, seeds: list[int], *, max_steps: int, pla
                                            frame_skip, min_move, max_gap)
                 row.pairs = len(demo.actions)
                 demos.append(demo)
+            if on_takeover is not None:
+                on_takeover(row, took)
         rows.append(row)
         if progress is not None:
             progress.update(1)

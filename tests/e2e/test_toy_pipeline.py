@@ -7,6 +7,7 @@ scripts are in ``test_toy_sweeps_and_scripts.py``, which runs beside this file u
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -284,6 +285,13 @@ def test_dagger_adds_the_planners_continuations_from_the_policys_own_states(stor
     obs_fn = ObservationFn.for_policy(load_tokenizer(tok_dir), json.loads((sft / TEXT_EMBEDDINGS).read_text()), info)
     read = sft_pairs(sft, info, Dataset(shown(store, "collect")), TokenStore(tok_dir), obs_fn, "train")
     assert len(read[1]) == metrics["pairs/train"]
+    # the round's starts reproduce from the plain SFT policy (the same first cloning), and are drawn
+    out = subprocess.run([sys.executable, "scripts/dagger_strips.py", str(shown(store, "collect")), str(tok_dir), str(sft),
+                          "--policy", str(shown(store, "sft")), "--out", str(store.parent / "dagger_strips")],
+                         cwd=REPO, capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert f"rows equal to dagger.jsonl: {len(failed)} of {len(failed)}" in out.stdout
+    assert len(list((store.parent / "dagger_strips").glob("*_success.png"))) == len(finished)
 
 
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
