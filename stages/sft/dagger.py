@@ -48,10 +48,11 @@ def round_seeds(seed: int, round_: int, n: int) -> list[int]:
 
 
 def demo_from_recording(rec, tokenizer, episode_id: str, instruction: str, frame_skip: int, min_move: float,
-                        max_gap: int) -> Demo:
+                        max_gap: int, first: np.ndarray | None = None) -> Demo:
     """The planner's continuation as a demonstration at policy steps (``stages.sft.data.load_demo``'s
     reading: re-timed when ``min_move > 0``, else every ``frame_skip``-th frame); only the kept
-    frames are encoded."""
+    frames are encoded. ``first`` (h, w): the episode's first frame's tokens (a policy that reads
+    the first frame reads the rollout's, not the takeover state's)."""
     from stages.common.frame_skip import compose_actions, frame_indices
 
     n = len(rec.action)
@@ -63,7 +64,7 @@ def demo_from_recording(rec, tokenizer, episode_id: str, instruction: str, frame
         actions = compose_actions(rec.action, frame_skip)
     tokens = tokenizer.encode(rec.third[idx], rec.wrist[idx]).cpu().numpy().astype(np.int64)  # (T'+1, h, w)
     return Demo(episode_id, instruction, tokens, proprio_from_state(rec.ee_pose[idx], rec.qpos[idx]), actions,
-                rec.obj_pose[idx, :3])
+                rec.obj_pose[idx, :3], first)
 
 
 def run_round(policy, sim, specs: list, seeds: list[int], *, max_steps: int, plan_steps: int, frame_skip: int,
@@ -94,7 +95,7 @@ def run_round(policy, sim, specs: list, seeds: list[int], *, max_steps: int, pla
                 row.control_steps = len(took.recording.action)
             if took.success:
                 demo = demo_from_recording(took.recording, sim.obs_fn.tok, f"dagger/{spec.key}/{seed}", sim.instruction,
-                                           frame_skip, min_move, max_gap)
+                                           frame_skip, min_move, max_gap, sim.first_tokens[0].cpu().numpy())
                 row.pairs = len(demo.actions)
                 demos.append(demo)
             if on_takeover is not None:
@@ -123,7 +124,8 @@ def save_demos(path, demos: list[Demo]) -> None:
 
     arrays = {}
     for i, d in enumerate(demos):
-        arrays.update({f"{i}/tokens": d.tokens, f"{i}/proprio": d.proprio, f"{i}/actions": d.actions, f"{i}/obj": d.obj_xyz})
+        arrays.update({f"{i}/tokens": d.tokens, f"{i}/proprio": d.proprio, f"{i}/actions": d.actions, f"{i}/obj": d.obj_xyz,
+                       f"{i}/first": d.tokens[0] if d.first is None else d.first})
     np.savez(path / DEMOS_NPZ, **arrays)
     (path / DEMOS_JSON).write_text(json.dumps([[d.episode_id, d.instruction] for d in demos]) + "\n")
 
@@ -134,7 +136,7 @@ def load_demos(path) -> list[Demo]:
 
     names = json.loads((path / DEMOS_JSON).read_text())
     with np.load(path / DEMOS_NPZ) as z:
-        return [Demo(eid, text, z[f"{i}/tokens"], z[f"{i}/proprio"], z[f"{i}/actions"], z[f"{i}/obj"])
+        return [Demo(eid, text, z[f"{i}/tokens"], z[f"{i}/proprio"], z[f"{i}/actions"], z[f"{i}/obj"], z[f"{i}/first"])
                 for i, (eid, text) in enumerate(names)]
 
 

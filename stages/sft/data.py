@@ -31,6 +31,7 @@ class Demo:
     proprio: np.ndarray
     actions: np.ndarray
     obj_xyz: np.ndarray | None = None  # (T'+1, 3) object centre (m), when the shard records it
+    first: np.ndarray | None = None  # (h, w) the episode's first frame's tokens when that is not tokens[0] (a DAgger continuation)
 
 
 def retimed_indices(tcp_xyz: np.ndarray, gripper: np.ndarray, frame_skip: int, min_move: float, max_gap: int) -> np.ndarray:
@@ -85,8 +86,9 @@ def pairs(demos: list[Demo], obs_fn) -> tuple[dict[str, np.ndarray], np.ndarray]
     parts, acts = [], []
     for d in demos:
         n = len(d.actions)
+        first = d.tokens[:1] if d.first is None else np.asarray(d.first)[None]  # (1, h, w)
         parts.append(obs_fn.from_tokens(d.tokens[:n], d.proprio[:n], [d.instruction] * n,
-                                        first=np.repeat(d.tokens[:1], n, axis=0)))
+                                        first=np.repeat(first, n, axis=0)))
         acts.append(d.actions)
     if not parts:
         raise ValueError("no demonstration pairs")

@@ -10,7 +10,8 @@ from stages.sft.data import Demo
 def test_a_rounds_demonstrations_and_rows_come_back_from_its_checkpoint(tmp_path):
     rng = np.random.default_rng(0)
     demos = [Demo(f"dagger/push/s{i}/{i}", "push it", rng.integers(0, 255, (n + 1, 16, 8)), rng.normal(size=(n + 1, 10)),
-                  rng.normal(size=(n, 7)).astype(np.float32), rng.normal(size=(n + 1, 3))) for i, n in enumerate((3, 5))]
+                  rng.normal(size=(n, 7)).astype(np.float32), rng.normal(size=(n + 1, 3)),
+                  None if i == 0 else rng.integers(0, 255, (16, 8))) for i, n in enumerate((3, 5))]
     rows = [Rollout("push/s0", 6_000_000, 4, False, True, "success", 120, 3),
             Rollout("pull/s1", 6_000_001, 75, False, False, "no_plan"), Rollout("pull/s1", 6_000_002, 9, True, False, "none")]
     save_round(tmp_path, demos, rows)
@@ -20,6 +21,7 @@ def test_a_rounds_demonstrations_and_rows_come_back_from_its_checkpoint(tmp_path
         assert (a.episode_id, a.instruction) == (b.episode_id, b.instruction)
         for field in ("tokens", "proprio", "actions", "obj_xyz"):
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+        np.testing.assert_array_equal(b.first, a.tokens[0] if a.first is None else a.first)
     counts = summary(rows)
     assert counts == {"starts": 3, "policy_success": 1, "rested": 1, "takeover_success": 1, "takeover_failed": 0,
                       "takeover_no_plan": 1, "pairs": 3}
