@@ -9,7 +9,7 @@ the seeds, and gives both intervals: over the pooled episodes (these policies) a
 (Student-t: what another seed would give).
 
     PYTHONPATH=. .venv/bin/python scripts/fresh_state_table.py [--manifest M] [--figure PNG]
-        [--by-task [--group push+pull=push,pull ...]] [--rates] [--rest]
+        [--by-task [--group push+pull=push,pull ...]] [--rates] [--rest] [--both-splits]
 
 ``--by-task`` adds a second table with the same two intervals per task (every task the episodes hold,
 in the order they first appear) and per ``--group`` of tasks pooled (``NAME=task,task``; repeatable):
@@ -18,7 +18,8 @@ compared policy's success rate per split and task, seeds pooled, and over all ta
 Wilson interval (unpaired: the differences are in the tables above). ``--rest`` adds, per compared
 policy and split, the share of its failed episodes that came to rest (the evaluate stage's
 ``rest_steps``, docs/evaluate.md) and of its successful ones; files written before episodes carried
-``rest_steps`` give '-'.
+``rest_steps`` give '-'. ``--both-splits`` adds, per comparison, the paired difference pooled over
+its splits and seeds together (a prediction that pools IND and OOD, e.g. prediction 20 of docs/RESULTS.md).
 
 File names: ``<stem>_s<seed>_<tag>_<date>.jsonl`` in domain, ``<stem>_ood_s<seed>_<tag>_<date>.jsonl``
 out of domain; each (stem, seed, split) must match exactly one file. A comparison's ``tag`` is one
@@ -36,7 +37,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.sweep_report.paired import across_seeds, by_split, pair_up  # noqa: E402
+from stages.sweep_report.paired import across_seeds, by_split, pair_up, paired_difference  # noqa: E402
 
 FRESH = Path(__file__).resolve().parents[1] / "docs" / "results" / "fresh_states"
 SPLITS = ("ind", "ood")
@@ -137,6 +138,26 @@ def compare(c: Comparison, folder: Path, tasks: frozenset[str] | None = None) ->
             per_seed.append(by_split(pairs)[(split,)]["diff"])
         out[split] = {"pooled": by_split(pooled)[(split,)], "per_seed": per_seed, "seeds": across_seeds(per_seed)}
     return out
+
+
+def both_splits(c: Comparison, folder: Path) -> dict:
+    """The paired difference over every split and seed of ``c`` pooled (``paired_difference``'s dict)."""
+    pairs = []
+    for split in c.splits:
+        for seed in c.seeds:
+            method = episodes(episodes_file(folder, c.stem, seed, split, c.tag_of(seed)))
+            base = episodes(episodes_file(folder, c.baseline, seed, split, c.tag_of(seed)))
+            pairs += [(bool(r["success"]), b) for r, b in pair_up(method, base) if r["split"] == split]
+    return paired_difference(pairs)
+
+
+def both_table(rows: list[tuple[Comparison, dict]]) -> str:
+    lines = ["| method | against | seeds | splits | pooled over splits and seeds | states better / worse | n |",
+             "|---|---|---|---|---|---|---|"]
+    for c, r in rows:
+        lines.append(f"| {c.label} | `{c.baseline}` | {', '.join(map(str, c.seeds))} | {' + '.join(c.splits)} | "
+                     f"{r['diff']:+.3f} [{r['lo']:+.3f}, {r['hi']:+.3f}] | {r['better']} / {r['worse']} | {r['n']:,} |")
+    return "\n".join(lines)
 
 
 def _cell(r: dict | None) -> str:
@@ -310,6 +331,8 @@ def main() -> None:
                     help="also print each compared policy's success rate per split and task (Table 2's layout)")
     ap.add_argument("--rest", action="store_true",
                     help="also print each compared policy's share of failed / successful episodes that came to rest")
+    ap.add_argument("--both-splits", action="store_true",
+                    help="also print each comparison pooled over its splits and seeds together")
     args = ap.parse_args()
     if args.group and not args.by_task:
         ap.error("--group needs --by-task")
@@ -327,6 +350,9 @@ def main() -> None:
     if args.rest:
         print()
         print(rest_table(rest_rates(comparisons, folder)))
+    if args.both_splits:
+        print()
+        print(both_table([(c, both_splits(c, folder)) for c in comparisons]))
     if args.figure:
         figure(rows, args.figure)
         print(f"figure: {args.figure}", file=sys.stderr)

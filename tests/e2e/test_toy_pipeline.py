@@ -254,12 +254,13 @@ def test_an_sft_ensemble_plays_is_fine_tuned_by_ppo_and_is_evaluated(store):
 
 
 def test_dagger_adds_the_planners_continuations_from_the_policys_own_states(store):
-    """``sft.dagger_rounds=1``: the cloned policy acts on IND training environments, the planner finishes
-    its failures from where it stopped, and the policy is trained again on both (stages.sft.dagger)."""
-    sets = ["--set", "sft.dagger_rounds=1", "--set", "sft.dagger_episodes=2", "--set", "sft.dagger_max_steps=4"]
-    acts = actions(cli(store, "run", "--profile", "toy", "--until", "sft", *sets))
+    """The default ``sft.dagger_rounds=1``: the cloned policy acts on IND training environments, the planner
+    finishes its failures from where it stopped, and the policy is trained again on both (stages.sft.dagger);
+    ``sft.dagger_rounds=0`` is the cloning alone."""
+    plain_sets = ["--set", "sft.dagger_rounds=0"]
+    acts = actions(cli(store, "run", "--profile", "toy", "--until", "sft", *plain_sets))
     assert acts[("sft", "ran")] == 1 and acts[("collect", "cached")] == 1, acts
-    sft = shown(store, "sft", *sets)
+    sft = shown(store, "sft")
     metrics = json.loads((sft / "metrics.json").read_text())
     rows = [json.loads(x) for x in (sft / "dagger.jsonl").read_text().splitlines()]
     assert len(rows) == metrics["dagger/round1/starts"] == 2
@@ -271,7 +272,8 @@ def test_dagger_adds_the_planners_continuations_from_the_policys_own_states(stor
     assert len(finished) == metrics["dagger/demonstrations"] >= 1 and all(r["pairs"] > 0 for r in finished)
     assert metrics["pairs/train"] == metrics["pairs/train_collected"] + metrics["dagger/pairs"]
     assert metrics["dagger/pairs"] == sum(r["pairs"] for r in rows)
-    plain = json.loads((shown(store, "sft") / "metrics.json").read_text())
+    plain = json.loads((shown(store, "sft", *plain_sets) / "metrics.json").read_text())
+    assert not (shown(store, "sft", *plain_sets) / "dagger.jsonl").exists()
     assert plain["pairs/train"] == metrics["pairs/train_collected"]  # the same collected demonstrations
     # rl's demonstration anchor and filtered BC read what SFT trained on: the continuations included
     from stages.collect.dataset import Dataset
@@ -287,7 +289,7 @@ def test_dagger_adds_the_planners_continuations_from_the_policys_own_states(stor
     assert len(read[1]) == metrics["pairs/train"]
     # the round's starts reproduce from the plain SFT policy (the same first cloning), and are drawn
     out = subprocess.run([sys.executable, "scripts/dagger_strips.py", str(shown(store, "collect")), str(tok_dir), str(sft),
-                          "--policy", str(shown(store, "sft")), "--out", str(store.parent / "dagger_strips")],
+                          "--policy", str(shown(store, "sft", *plain_sets)), "--out", str(store.parent / "dagger_strips")],
                          cwd=REPO, capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONPATH": str(REPO)})
     assert out.returncode == 0, out.stderr[-3000:]
     assert f"rows equal to dagger.jsonl: {len(failed)} of {len(failed)}" in out.stdout

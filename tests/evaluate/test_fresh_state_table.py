@@ -43,6 +43,10 @@ def test_pooled_and_across_seed_differences_per_split(tmp_path):
     # OOD: both seeds -0.25 (the method lost state 1) -> across seeds sd 0, interval of zero width
     assert "| +0.50 [+0.13, +0.87] | +0.50 [-1.00, +1.00] | -0.25 [-0.57, +0.07] | -0.25 [-0.25, -0.25] | 8 |" in row
     assert (tmp_path / "f.png").stat().st_size > 0
+    both = _run("--manifest", str(tmp_path / "comparisons.json"), "--both-splits").stdout.splitlines()
+    # 16 pairs: IND +4 (seed 0) and 0, OOD -1 and -1 -> +2 / 16 = +0.125
+    assert "| meth | `sft` | 0, 1 | ind + ood | +0.125 [" in next(x for x in both if "ind + ood" in x)
+    assert "| 4 / 2 | 16 |" in next(x for x in both if "ind + ood" in x)
 
 
 def test_a_tag_per_seed_pairs_each_seed_within_its_own_build(tmp_path):
