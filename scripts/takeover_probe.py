@@ -31,7 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from stages.common.takeover import take_over  # noqa: E402
-from stages.evaluate.episodes import REST_ACTION, REST_STEPS  # noqa: E402
+from stages.common.rest import REST_ACTION, REST_STEPS  # noqa: E402
 
 
 def main(argv=None) -> None:

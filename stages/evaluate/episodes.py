@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from stages.common.rest import REST_ACTION, REST_STEPS, longest_rest  # noqa: F401  (the report reads them from here)
+
 
 @dataclass
 class Job:
@@ -26,20 +28,6 @@ class Job:
     record: list[int] = field(default_factory=list)  # seeds whose third-view frames are returned
     device: str = "cpu"
     frame: str = "current"  # which frame's tokens the policy reads (sft.frame, its policy.json)
-
-
-REST_ACTION = 0.03  # |commanded TCP displacement| (env action units, dims 0-2) below which a policy step is "at rest"
-REST_STEPS = 3  # an episode "came to rest" when its policy commanded rest this many steps running (docs/evaluate.md)
-
-
-def longest_rest(position_commands: np.ndarray) -> int:
-    """The longest run of consecutive policy steps whose commanded TCP displacement (steps, 3) is below
-    ``REST_ACTION``: how long the policy stopped acting. 0 for an episode with no step."""
-    best = run = 0
-    for still in np.linalg.norm(np.asarray(position_commands, dtype=np.float64).reshape(-1, 3), axis=1) < REST_ACTION:
-        run = run + 1 if still else 0
-        best = max(best, run)
-    return best
 
 
 _SIMS: dict = {}  # per worker process: (tokenizer, text, camera, repeat, horizon) -> SimTaskEnv, reused across jobs

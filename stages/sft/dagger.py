@@ -73,7 +73,7 @@ def run_round(policy, sim, specs: list, seeds: list[int], *, max_steps: int, pla
     ``frame_skip`` control steps per action): the new demonstrations and one ``Rollout`` per start.
     ``on_takeover(row, takeover)``, if given, sees every takeover (``scripts/dagger_strips.py`` draws them)."""
     from stages.common.takeover import take_over
-    from stages.evaluate.episodes import REST_ACTION, REST_STEPS
+    from stages.common.rest import REST_ACTION, REST_STEPS
     from stages.sft.policy import act
 
     demos, rows = [], []
