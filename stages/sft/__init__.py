@@ -294,16 +294,16 @@ def _dagger(ctx, cfg: Config, policy, fit, train: tuple, obs_fn, pool: set):
                      counts["policy_success"], counts["starts"], counts["rested"], counts["takeover_success"],
                      counts["takeover_failed"], counts["takeover_no_plan"], len(demos), counts["pairs"])
         fitted = (None,)  # round r + 1 needs the policy trained on the union so far
+        union = _union(train, added, obs_fn)
         if r == cfg.dagger_rounds - 1 or cp.load(f"dagger-round-{r + 1}") is None:
             torch.manual_seed(_round_seed(cfg.seed, r + 1))
-            fitted = fit(_union(train, added, obs_fn), f" DAgger {r + 1}")
+            fitted = fit(union, f" DAgger {r + 1}")
     from dataclasses import asdict
 
     (ctx.out / "dagger.jsonl").write_text("".join(json.dumps({"round": r + 1, **asdict(row)}) + "\n"
                                                   for r, row in rows_all))
     (ctx.out / DAGGER_DIR).mkdir()
     save_demos(ctx.out / DAGGER_DIR, added)  # trained on: rl's demonstration anchor reads them (stages.rl.demonstrations)
-    union = _union(train, added, obs_fn)
     metrics.update({"dagger/demonstrations": len(added), "dagger/pairs": int(sum(len(d.actions) for d in added)),
                     "pairs/train_collected": int(len(train[1]))})
     return (*fitted, union, metrics)
