@@ -296,6 +296,51 @@ def test_dagger_adds_the_planners_continuations_from_the_policys_own_states(stor
     assert len(list((store.parent / "dagger_strips").glob("*_success.png"))) == len(finished)
 
 
+def test_sft_killed_after_a_dagger_rounds_checkpoint_resumes_without_rolling_that_round_out_again(store):
+    """Each DAgger round's demonstrations are a checkpoint: a run of two rounds killed (kill -9) once the
+    first round's is published rolls out only the second round on its rerun, and the artifact holds the
+    first round exactly as the killed run left it."""
+    import signal
+    import time
+
+    sets = ["--set", "sft.dagger_rounds=2"]
+    args = ["run", "--profile", "toy", "--until", "sft", *sets, "--store", str(store)]
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline", *args], cwd=REPO, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 900
+    while not (marks := list((store / "partial" / "sft").glob("*/dagger-round-0/.checkpoint.json"))):
+        assert proc.poll() is None, "sft ended before it was killed"
+        assert time.time() < deadline
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    checkpoint = marks[0].parent
+    assert not (checkpoint.parent / "dagger-round-1").exists()  # killed before the second round was saved
+    kept_rows = (checkpoint / "rollouts.jsonl").read_text().splitlines()
+    with np.load(checkpoint / "demos.npz") as z:
+        kept = {k: z[k] for k in z.files}
+    status = cli(store, "status", "--profile", "toy", "--until", "sft", *sets).stdout
+    assert "resumes from checkpoints: dagger-round-0" in status
+
+    cli(store, *args[:-2])
+    sft = shown(store, "sft", *sets)
+    log = (sft / "log.txt").read_text()
+    assert "DAgger round 1 resumed from its checkpoint" in log and "DAgger round 2 resumed" not in log
+    assert "DAgger round 2: the policy succeeded" in log  # rolled out by the rerun
+    assert not list((store / "partial" / "sft").glob(f"{sft.name}*"))  # dropped at commit
+    rows = [json.loads(x) for x in (sft / "dagger.jsonl").read_text().splitlines()]
+    first = [{k: v for k, v in r.items() if k != "round"} for r in rows if r["round"] == 1]
+    assert first == [json.loads(x) for x in kept_rows]  # the killed run's round, not a new one
+    second = [r for r in rows if r["round"] == 2]
+    assert len(second) == 2 and {r["seed"] for r in second}.isdisjoint({r["seed"] for r in first})
+    metrics = json.loads((sft / "metrics.json").read_text())
+    assert metrics["dagger/round1/starts"] == metrics["dagger/round2/starts"] == 2
+    assert metrics["pairs/train"] == metrics["pairs/train_collected"] + sum(r["pairs"] for r in rows)
+    assert len(kept) == 5 * sum(r["takeover"] == "success" for r in first)  # 5 arrays per demonstration
+    with np.load(sft / "dagger_demos" / "demos.npz") as z:  # round 1's demonstrations first, as saved
+        assert all(np.array_equal(z[k], v) for k, v in kept.items())
+
+
 def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horizon(store):
     from types import SimpleNamespace
 
