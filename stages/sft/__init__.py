@@ -193,11 +193,17 @@ def run(ctx) -> None:
             policy = assemble(members, obs_fn.space, kwargs)
         return policy, kwargs, hists, member_held, time.perf_counter() - t_fit
 
-    policy, kwargs, hists, member_held, fit_seconds = fit(train, "")
     dagger_metrics: dict = {}
+    if cfg.dagger_rounds and ctx.checkpoints().load("dagger-round-0") is not None:
+        # resumed past round 1's rollouts: the plain cloning they were rolled out by is not needed again
+        ctx.log.info("sft: DAgger round 1's checkpoint found: the cloning on the demonstrations alone is skipped")
+        plain = None
+    else:
+        plain = fit(train, "")
+        policy, kwargs, hists, member_held, fit_seconds = plain
     if cfg.dagger_rounds:
         policy, kwargs, hists, member_held, fit_seconds, train, dagger_metrics = _dagger(
-            ctx, cfg, policy, fit, train, obs_fn, pool)
+            ctx, cfg, plain, fit, train, obs_fn, pool)
     hist = hists[0]
     loc, scale = np.asarray(kwargs["action_loc"], np.float32), np.asarray(kwargs["action_scale"], np.float32)
     held = evaluate_pairs(policy, val if val is not None else train, weights)
@@ -249,11 +255,12 @@ def run(ctx) -> None:
                  [round(v, 3) for v in held["r2"]], held["gripper_sign_accuracy"])
 
 
-def _dagger(ctx, cfg: Config, policy, fit, train: tuple, obs_fn, pool: set):
-    """``cfg.dagger_rounds`` rounds of ``stages.sft.dagger`` from the cloned ``policy``; each round's
-    demonstrations are a checkpoint (a rerun after a kill rolls out again only the rounds it lacks)
-    and ``dagger.jsonl`` lists every start. Returns ``fit``'s results for the last round's training
-    set, that set, and the metrics."""
+def _dagger(ctx, cfg: Config, plain: tuple | None, fit, train: tuple, obs_fn, pool: set):
+    """``cfg.dagger_rounds`` rounds of ``stages.sft.dagger`` from ``plain``, ``fit``'s results on the
+    demonstrations alone (None when round 1's checkpoint exists: nothing rolls out with it); each
+    round's demonstrations are a checkpoint (a rerun after a kill rolls out again only the rounds it
+    lacks, and trains only the policy of the first round it lacks) and ``dagger.jsonl`` lists every
+    start. Returns ``fit``'s results for the last round's training set, that set, and the metrics."""
     from stages.common.environments import pick_environments, training_environments
     from stages.common.sim_env import sim_over
     from stages.goals.environments import list_environments
@@ -263,7 +270,7 @@ def _dagger(ctx, cfg: Config, policy, fit, train: tuple, obs_fn, pool: set):
                              cfg.dagger_episodes)
     cp = ctx.checkpoints()
     added, rows_all, metrics = [], [], {}
-    fitted = (policy, *([None] * 4))
+    fitted = plain if plain is not None else (None,)
     for r in range(cfg.dagger_rounds):
         saved = cp.load(f"dagger-round-{r}")
         if saved is not None:

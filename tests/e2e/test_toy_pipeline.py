@@ -298,8 +298,8 @@ def test_dagger_adds_the_planners_continuations_from_the_policys_own_states(stor
 
 def test_sft_killed_after_a_dagger_rounds_checkpoint_resumes_without_rolling_that_round_out_again(store):
     """Each DAgger round's demonstrations are a checkpoint: a run of two rounds killed (kill -9) once the
-    first round's is published rolls out only the second round on its rerun, and the artifact holds the
-    first round exactly as the killed run left it."""
+    first round's is published rolls out only the second round on its rerun (without cloning the
+    demonstrations alone again), and the artifact holds the first round exactly as the killed run left it."""
     import signal
     import time
 
@@ -326,6 +326,7 @@ def test_sft_killed_after_a_dagger_rounds_checkpoint_resumes_without_rolling_tha
     sft = shown(store, "sft", *sets)
     log = (sft / "log.txt").read_text()
     assert "DAgger round 1 resumed from its checkpoint" in log and "DAgger round 2 resumed" not in log
+    assert "the cloning on the demonstrations alone is skipped" in log  # only round 1's policy is trained again
     assert "DAgger round 2: the policy succeeded" in log  # rolled out by the rerun
     assert not list((store / "partial" / "sft").glob(f"{sft.name}*"))  # dropped at commit
     rows = [json.loads(x) for x in (sft / "dagger.jsonl").read_text().splitlines()]
