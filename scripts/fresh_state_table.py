@@ -32,6 +32,7 @@ import argparse
 import json
 import math
 import sys
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +43,7 @@ from stages.sweep_report.paired import across_seeds, by_split, pair_up, paired_d
 FRESH = Path(__file__).resolve().parents[1] / "docs" / "results" / "fresh_states"
 SPLITS = ("ind", "ood")
 XLIM = 0.25  # the forest plot's half-width
+LABEL_WIDTH = 70  # characters per line of a forest-plot label
 FIELDS = {"label", "stem", "baseline", "seeds", "tag"}
 OPTIONAL = {"splits"}  # default both; a method evaluated in one split only names it
 
@@ -293,8 +295,12 @@ def figure(rows: list[tuple[Comparison, dict]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 0.4 * len(rows) + 1.4), sharey=True)
-    ys = list(range(len(rows)))[::-1]
+    # long labels wrapped, each row as tall as its label, so that none is cut off at the left edge
+    labels = [textwrap.fill(c.label + ("" if c.baseline == "sft" else f", minus {c.baseline}"), LABEL_WIDTH)
+              for c, _ in rows]
+    heights = [max(1.0, 0.45 * (lab.count("\n") + 1)) for lab in labels]
+    ys = [sum(heights[i + 1:]) + heights[i] / 2 for i in range(len(rows))]  # the first row on top
+    fig, axes = plt.subplots(1, 2, figsize=(15, 0.42 * sum(heights) + 1.6), sharey=True, layout="constrained")
     for ax, split in zip(axes, SPLITS):
         for y, (c, r) in zip(ys, rows):
             if split not in r:
@@ -311,12 +317,11 @@ def figure(rows: list[tuple[Comparison, dict]], path: Path) -> None:
         ax.set_xlim(-XLIM, XLIM)  # two-seed Student-t intervals run off it rather than squash the rest
         ax.set_title({"ind": "in domain", "ood": "out of domain"}[split])
         ax.grid(axis="x", alpha=0.3)
-    axes[0].set_yticks(ys, [c.label + ("" if c.baseline == "sft" else f", minus {c.baseline}") for c, _ in rows],
-                       fontsize=8)
+    axes[0].set_yticks(ys, labels, fontsize=7)
+    axes[0].set_ylim(0, sum(heights))
     fig.suptitle("thick: 95% interval over pooled episodes; thin: over seeds (Student-t, may run off the axis); dots: seeds", fontsize=9)
     fig.supxlabel("success minus SFT's (or the named baseline's), paired on the same initial states", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110)  # the constrained layout leaves room for every label and both titles
     plt.close(fig)
 
 
