@@ -7,9 +7,10 @@ optimal demonstrations re-timed so that no step starts from rest (``data.py``), 
 normalisation inside the network (``policy.TaskPolicy``) with the three near-noise rotation dims
 down-weighted, the gripper as an open / close decision executed by its sign, dropout on the image
 features, a held-out split of demonstrations with early stopping, AdamW with a cosine schedule,
-PPO's initial action noise set per dimension from the held-out residuals, then one DAgger round with
+PPO's initial action noise set per dimension from the held-out residuals, then two DAgger rounds with
 the planner as the expert (``dagger.py``: the planner's continuations from where the cloned policy
-stopped, trained on with the demonstrations; +0.13 success at ``small``, docs/RESULTS.md prediction 20).
+stopped, trained on with the demonstrations; the first round +0.13 success at ``small``, docs/RESULTS.md
+prediction 20, the second +0.04 more, prediction 25).
 
 Inputs:
     collect -- demonstrations (states, actions, instructions; only successful episodes are used)
@@ -95,10 +96,11 @@ class Config(BaseModel):
     ensemble: int = Field(1, ge=1, description="policies trained on the same split, each from its own initialisation "
                           "and batch order; the stage keeps one network acting on their mean action "
                           "(stages.sft.policy.assemble; docs/sft.md, 'An ensemble of trainings')")
-    dagger_rounds: int = Field(1, ge=0, description="DAgger rounds with the planner as the expert (stages/sft/dagger.py; "
+    dagger_rounds: int = Field(2, ge=0, description="DAgger rounds with the planner as the expert (stages/sft/dagger.py; "
                                "docs/sft.md): the policy acts on IND training environments, the planner finishes its "
                                "failures from where it stopped, and the policy is trained again on the demonstrations "
-                               "plus those continuations; 0 = off (default 1 since prediction 20, docs/RESULTS.md)")
+                               "plus those continuations; 0 = off (default 2 since prediction 25, 1 since prediction 20, "
+                               "docs/RESULTS.md)")
     dagger_episodes: int = Field(256, ge=1, description="policy rollouts per DAgger round, round-robin over the tasks' "
                                  "IND training environments")
     dagger_max_steps: int = Field(75, ge=1, description="policy steps of a DAgger rollout before the planner takes over")
