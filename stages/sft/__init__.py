@@ -10,7 +10,7 @@ features, a held-out split of demonstrations with early stopping, AdamW with a c
 PPO's initial action noise set per dimension from the held-out residuals, then two DAgger rounds with
 the planner as the expert (``dagger.py``: the planner's continuations from where the cloned policy
 stopped, trained on with the demonstrations; the first round +0.13 success at ``small``, docs/RESULTS.md
-prediction 20, the second +0.04 more, prediction 25).
+prediction 20, the second about +0.03 more, out of domain, prediction 25).
 
 Inputs:
     collect -- demonstrations (states, actions, instructions; only successful episodes are used)
@@ -261,8 +261,8 @@ def _dagger(ctx, cfg: Config, plain: tuple | None, fit, train: tuple, obs_fn, po
     """``cfg.dagger_rounds`` rounds of ``stages.sft.dagger`` from ``plain``, ``fit``'s results on the
     demonstrations alone (None when round 1's checkpoint exists: nothing rolls out with it); each
     round's demonstrations are a checkpoint (a rerun after a kill rolls out again only the rounds it
-    lacks, and trains only the policy of the first round it lacks) and ``dagger.jsonl`` lists every
-    start. Returns ``fit``'s results for the last round's training set, that set, and the metrics."""
+    lacks, and trains no policy that only a checkpointed round rolled out) and ``dagger.jsonl`` lists
+    every start. Returns ``fit``'s results for the last round's training set, that set, and the metrics."""
     from stages.common.environments import pick_environments, training_environments
     from stages.common.sim_env import sim_over
     from stages.goals.environments import list_environments
