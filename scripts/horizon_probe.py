@@ -73,7 +73,9 @@ def main() -> None:
             print(f"{task:12s} k={k:3d}: imagined success {int(done.sum())}/{len(starts)} within {k + args.slack} steps",
                   flush=True)
     if args.out:
-        args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "rows": rows}, indent=1) + "\n")
+        keys = {name: dirs[name].name[:12] for name in STAGES}  # the artifacts' keys, not this machine's paths
+        opts = {k: getattr(args, k) for k in ("k", "per_task", "slack", "theta", "seed")}
+        args.out.write_text(json.dumps({"artifacts": keys, "options": opts, "rows": rows}, indent=1) + "\n")
 
 
 if __name__ == "__main__":
