@@ -98,8 +98,9 @@ def main() -> None:
             elif args.actions == "policy":
                 done = imagined_successes(inp.sft_policy, inp.wm, inp.obs_fn, starts, k + args.slack, args.theta)
             else:
-                near = [((_, i), st) for (_, i), st in zip(pick, per_episode) if start_k_before(st, k) is not None]
-                acts = np.stack([demo_actions(inp.steps(i)[1], len(st) - k, k + args.slack) for (_, i), st in near])
+                near = [(i, st) for (_, i), st in zip(pick, per_episode) if start_k_before(st, k) is not None]
+                acts = np.stack([demo_actions(inp.steps(i)[1], len(st) - k, k + args.slack)  # (N, k + slack, 7)
+                                 for i, st in near])
                 done = replayed_successes(inp.wm, np.stack([s.tokens for s in starts]), acts, args.theta)
             rows.append({"task": task, "k": k, "starts": len(starts), "imagined": int(done.sum()),
                          "rate": float(done.mean()) if len(done) else None})
