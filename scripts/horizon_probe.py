@@ -14,10 +14,17 @@ from there, a low one that it cannot even this close. ``--actions demo`` replays
 own recorded actions from the same frames instead (``k`` of them, then its last one repeated for the
 slack): whether the model and its done head show the success when the actions are the ones that
 really reached it, which separates the policy's imagined behaviour from the model's picture of the
-task's end.
+task's end. ``--actions sim`` asks what the policy really does from there: each demonstration's
+simulator state at that frame is restored (reset with the episode's seed, its recorded control
+actions replayed, as collect's replay check does), the same policy acts in ManiSkill for ``k +
+--slack`` policy steps, and the actions it took there are then imagined open loop from the frame.
+Per start it reports the real success, the world model's verdict on the policy's real actions (open
+loop) and on the policy acting on its own imagined frames (closed loop, the default mode), and how
+far the restored state is from the recorded one (TCP and object, mm; tokens of the rendered frame
+equal to the recorded frame's).
 
     PYTHONPATH=. .venv/bin/python scripts/horizon_probe.py <collect> <tokenize> <train_wm> <goals> <sft> \\
-        <wm_play> [--k 5 10 20 30] [--actions policy|demo] [--per-task 32] [--slack 10] [--theta 0.5] [--seed 0] [--out probe.json]
+        <wm_play> [--k 5 10 20 30] [--actions policy|demo|sim] [--per-task 32] [--slack 10] [--theta 0.5] [--seed 0] [--out probe.json]
 """
 from __future__ import annotations
 
@@ -46,6 +53,51 @@ def demo_actions(actions: np.ndarray, start: int, steps: int) -> np.ndarray:
     return np.concatenate([a, np.repeat(a[-1:], steps - len(a), axis=0)]) if len(a) < steps else a
 
 
+def restore(sim, spec, seed: int, control_actions: np.ndarray) -> dict:
+    """Put ``sim`` (a ``SimTaskEnv``) in a recorded episode's state after ``control_actions`` (c, 7): reset
+    ``spec``'s scene with the episode's ``seed`` and step the actions unrendered (collect recorded them
+    from that reset, and its replay check reproduces them). Returns the policy's observation there; the
+    episode's first frame is the reset's."""
+    env = sim._env_for(spec)
+    raw, _ = env.reset(seed=int(seed))
+    sim.spec_now, sim.env, sim.t, sim.frames = spec, env, 0, []
+    sim.instruction = spec.instruction or env.instruction
+    obs = sim._observe(raw, first=True)
+    if len(control_actions) == 0:
+        return obs
+    for a in control_actions:
+        sim._unobserved_control_step(np.asarray(a, np.float32))
+    raw, _, _, _ = sim._observe_current(np.asarray(control_actions[-1], np.float32))
+    return sim._observe(raw)
+
+
+def restore_error(sim, ee_pose: np.ndarray, obj_pose: np.ndarray | None) -> tuple[float, float]:
+    """(TCP, object) position error in mm of the simulator's current state against the recorded
+    ``ee_pose`` (7,) and ``obj_pose`` (7,) (nan where the shard has no object pose)."""
+    base = sim.env.unwrapped
+    tcp = float(np.linalg.norm(base.agent.tcp.pose.p[0].cpu().numpy() - ee_pose[:3])) * 1000
+    obj = float("nan") if obj_pose is None else float(np.linalg.norm(base.obj.pose.p[0].cpu().numpy() - obj_pose[:3])) * 1000
+    return tcp, obj
+
+
+def policy_in_sim(policy, sim, obs: dict, steps: int) -> tuple[bool, np.ndarray]:
+    """Run ``policy`` (deterministic) in ``sim`` from ``obs`` for at most ``steps`` policy steps: (success,
+    the executed actions (n, 7), n <= steps, ending at the success)."""
+    from stages.sft.policy import act
+
+    sim.max_steps, sim.t = steps, 0
+    taken = []
+    for _ in range(steps):
+        a = act(policy, {k: v[None] for k, v in obs.items()})[0]  # (7,)
+        taken.append(a)
+        obs, _, success, truncated, _ = sim.step(a)
+        if success:
+            return True, np.stack(taken)
+        if truncated:
+            break
+    return False, np.stack(taken)
+
+
 @torch.no_grad()
 def replayed_successes(wm, tokens: np.ndarray, actions: np.ndarray, theta: float) -> np.ndarray:
     """(N,) bool: whether the done head reached ``theta`` while the world model imagined the recorded
@@ -60,13 +112,49 @@ def replayed_successes(wm, tokens: np.ndarray, actions: np.ndarray, theta: float
     return done
 
 
+def sim_row(inp, sim, specs: dict, near: list, starts: list, task: str, k: int, args) -> dict:
+    """``--actions sim`` for one (task, k): ``near`` [(environment, episode id, its starts)], ``starts`` the
+    world-model starts k frames before each success."""
+    from stages.common.frame_skip import frame_indices
+    from stages.rl.calibration import imagined_successes
+
+    steps = k + args.slack
+    real, acts, tcp, obj, match = [], [], [], [], []
+    for (e, i, st), s in zip(near, starts):
+        ep = inp.dataset.load_states(i)
+        c = int(frame_indices(len(ep["action"]), inp.frame_skip)[len(st) - k])  # control step of the start frame
+        obs = restore(sim, specs[e.env_id], inp.meta[i].seed, ep["action"][:c])
+        t, o = restore_error(sim, ep["ee_pose"][c], ep["obj_pose"][c] if "obj_pose" in ep else None)
+        tcp.append(t)
+        obj.append(o)
+        match.append(float((sim.tokens[0].numpy() == s.tokens).mean()))
+        ok, taken = policy_in_sim(inp.sft_policy, sim, obs, steps)
+        real.append(ok)
+        acts.append(demo_actions(taken, 0, steps))  # (steps, 7): after the end, its last action repeated
+    real = np.asarray(real)
+    wm_open = replayed_successes(inp.wm, np.stack([s.tokens for s in starts]), np.stack(acts), args.theta)
+    wm_closed = imagined_successes(inp.sft_policy, inp.wm, inp.obs_fn, starts, steps, args.theta)
+    row = {"task": task, "k": k, "starts": len(starts), "real": int(real.sum()), "wm_open": int(wm_open.sum()),
+           "wm_closed": int(wm_closed.sum()), "wm_open_of_real": int((wm_open & real).sum()),
+           "wm_closed_of_real": int((wm_closed & real).sum()), "tcp_mm_median": float(np.median(tcp)),
+           "obj_mm_median": float(np.nanmedian(obj)), "obj_mm_max": float(np.nanmax(obj)),
+           "token_match_median": float(np.median(match))}
+    print(f"{task:12s} k={k:3d} (sim): real {row['real']}/{len(starts)}; world model on the policy's real actions "
+          f"{row['wm_open']} ({row['wm_open_of_real']} of the real), closed loop {row['wm_closed']} "
+          f"({row['wm_closed_of_real']} of the real); restored TCP {row['tcp_mm_median']:.1f} mm, object "
+          f"{row['obj_mm_median']:.1f} mm (max {row['obj_mm_max']:.1f}), tokens equal {row['token_match_median']:.2f}",
+          flush=True)
+    return row
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     for name in STAGES:
         ap.add_argument(name, type=Path, help=f"a committed {name} artifact directory")
     ap.add_argument("--k", type=int, nargs="+", default=[5, 10, 20, 30], help="policy steps before the success")
-    ap.add_argument("--actions", choices=["policy", "demo"], default="policy",
-                    help="the SFT policy closed loop (default), or the demonstration's recorded actions")
+    ap.add_argument("--actions", choices=["policy", "demo", "sim"], default="policy",
+                    help="the SFT policy closed loop (default), the demonstration's recorded actions, or the "
+                         "policy in ManiSkill from the demonstration's restored state (module docstring)")
     ap.add_argument("--per-task", type=int, default=32, help="demonstrations per task (a seeded choice)")
     ap.add_argument("--slack", type=int, default=10, help="imagined steps beyond k")
     ap.add_argument("--theta", type=float, default=0.5, help="done-head threshold (rl.theta_done)")
@@ -84,6 +172,12 @@ def main() -> None:
     inp.sft_policy.set_training_mode(False)  # deterministic actions, as the gate
     train = set(inp.split["train"])
     rng = np.random.default_rng(args.seed)
+    sim = specs = None
+    if args.actions == "sim":
+        from stages.common.sim_env import sim_over
+
+        sim, spec_list = sim_over(dirs["collect"], inp.obs_fn, inp.envs, max_steps=1, frame_skip=inp.frame_skip, seed=args.seed)
+        specs = {e.env_id: sp for e, sp in zip(inp.envs, spec_list)}
     rows = []
     for task in inp.tasks:
         demos = [(e, i) for e in inp.envs if e.task == task and e.split == "ind" for i in e.episodes
@@ -95,6 +189,10 @@ def main() -> None:
             starts = [s for s in (start_k_before(st, k) for st in per_episode) if s is not None]
             if not starts:
                 done = np.zeros(0, bool)
+            elif args.actions == "sim":
+                near = [(e, i, st) for (e, i), st in zip(pick, per_episode) if start_k_before(st, k) is not None]
+                rows.append(sim_row(inp, sim, specs, near, starts, task, k, args))
+                continue
             elif args.actions == "policy":
                 done = imagined_successes(inp.sft_policy, inp.wm, inp.obs_fn, starts, k + args.slack, args.theta)
             else:
