@@ -24,7 +24,7 @@ far the restored state is from the recorded one (TCP and object, mm; tokens of t
 equal to the recorded frame's).
 
     PYTHONPATH=. .venv/bin/python scripts/horizon_probe.py <collect> <tokenize> <train_wm> <goals> <sft> \\
-        <wm_play> [--k 5 10 20 30] [--actions policy|demo|sim] [--per-task 32] [--slack 10] [--theta 0.5] [--seed 0] [--out probe.json]
+        <wm_play> [--k 5 10 20 30] [--actions policy|demo|sim] [--policy FILE] [--per-task 32] [--slack 10] [--theta 0.5] [--seed 0] [--out probe.json]
 """
 from __future__ import annotations
 
@@ -158,6 +158,9 @@ def main() -> None:
     ap.add_argument("--per-task", type=int, default=32, help="demonstrations per task (a seeded choice)")
     ap.add_argument("--slack", type=int, default=10, help="imagined steps beyond k")
     ap.add_argument("--theta", type=float, default=0.5, help="done-head threshold (rl.theta_done)")
+    ap.add_argument("--policy", type=Path, default=None,
+                    help="probe this policy file (an rl artifact's policy.zip, a snapshot, imagined_bc_policy.zip) "
+                         "instead of the sft artifact's; it must observe as that sft policy does")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=None, help="write the table as JSON here")
     args = ap.parse_args()
@@ -169,6 +172,10 @@ def main() -> None:
 
     dirs = {name: getattr(args, name) for name in STAGES}
     inp = RLInputs.load(SimpleNamespace(input=lambda name: dirs[name], device="cpu"), Config())
+    if args.policy is not None:
+        from stages.sft.policy import load_policy
+
+        inp = dataclasses.replace(inp, sft_policy=load_policy(args.policy))
     inp.sft_policy.set_training_mode(False)  # deterministic actions, as the gate
     train = set(inp.split["train"])
     rng = np.random.default_rng(args.seed)
@@ -207,6 +214,7 @@ def main() -> None:
     if args.out:
         keys = {name: dirs[name].name[:12] for name in STAGES}  # the artifacts' keys, not this machine's paths
         opts = {k: getattr(args, k) for k in ("k", "actions", "per_task", "slack", "theta", "seed")}
+        opts["policy"] = None if args.policy is None else f"{args.policy.parent.name[:12]}/{args.policy.name}"
         args.out.write_text(json.dumps({"artifacts": keys, "options": opts, "rows": rows}, indent=1) + "\n")
 
 

@@ -53,6 +53,9 @@ Outputs:
                         (``stages.rl.acceptance``); its episodes in ``acceptance_episodes.jsonl``
     calibration.json    with ``calibration_ratio``: per task, the SFT policy's imagined and real success
                         rates and whether PPO trained on it (``stages.rl.calibration``)
+    imagined_bc_policy.zip  with ``imagined_bc_epochs`` (PPO): the SFT policy after behaviour cloning on
+                        imagined observations, the policy the gate reads and PPO starts from, in PPO's format
+                        (``stages.rl.imagined_bc``; ``scripts/evaluate_sft.py ... --rl <rl>/imagined_bc_policy.zip``)
     imagined.json       per split, the final policy's imagined episodes replayed in ManiSkill: where
                         the done head fired and whether the simulator agreed (``stages.rl.imagined``)
     metrics.json        PPO summary, env steps/s, policy parameter change from SFT, diagnostics
@@ -132,6 +135,13 @@ class Config(BaseModel):
         "(stages/rl/calibration.py; world-model rewards only); unset: 0.5 for PPO with a world-model reward, else 0 "
         "(the demonstration-anchor test, docs/RESULTS.md)")
     calibration_starts: int = Field(32, ge=1, description="IND training starts per task the calibration gate imagines from")
+    imagined_bc_epochs: int = Field(0, ge=0, description="0 = off; n > 0: before the calibration gate and PPO, n epochs "
+                                    "of the sft stage's loss on its training demonstrations plus their imagined twins "
+                                    "(each demonstration imagined under its own actions, restarted from the real frame "
+                                    "every imagined_bc_horizon steps: stages/rl/imagined_bc.py), so the policy acts on "
+                                    "the world model's frames as on the simulator's (world-model rewards only)")
+    imagined_bc_horizon: int = Field(8, ge=1, description="imagined BC: steps imagined from a real frame before the next restart")
+    imagined_bc_lr: float = Field(3e-4, gt=0, description="imagined BC: peak AdamW learning rate (cosine decay to 0)")
     num_envs: int = Field(16, ge=1, description="world-model environments stepped as one batch")
     wm_dtype: Literal["fp32", "bf16", "auto"] = Field(
         "auto", description="the world-model env's step, frame decoding and LPIPS reward convolutions: auto = bf16 on CUDA and on a CPU that runs "
@@ -240,6 +250,13 @@ class Config(BaseModel):
         if self.branch_horizon and REGISTRY[self.reward].env != "wm":
             raise ValueError(f"branch_horizon={self.branch_horizon} starts world-model episodes mid-way, but reward "
                              f"{self.reward!r} trains in the simulator, which starts only from resets; set it to 0")
+        return self
+
+    @model_validator(mode="after")
+    def _imagined_bc_needs_the_world_model(self) -> "Config":
+        if self.imagined_bc_epochs and REGISTRY[self.reward].env != "wm":
+            raise ValueError(f"imagined_bc_epochs={self.imagined_bc_epochs} teaches the policy the world model's frames, "
+                             f"but reward {self.reward!r} trains in the simulator; set it to 0")
         return self
 
     @model_validator(mode="after")

@@ -19,9 +19,17 @@ PARTS = ("train", "val")
 def sft_pairs(sft_dir: Path, sft_info: dict, dataset, store, obs_fn, part: str) -> tuple[dict, np.ndarray] | None:
     """``part`` ("train" | "val") of the sft artifact's demonstrations as (obs: key -> (M, ...), actions: (M, 7));
     None when that part is empty (an sft run without held-out demonstrations)."""
+    from stages.sft.data import pairs
+
+    demos = sft_demos(sft_dir, sft_info, dataset, store, part)
+    return pairs(demos, obs_fn) if demos else None
+
+
+def sft_demos(sft_dir: Path, sft_info: dict, dataset, store, part: str) -> list:
+    """``part`` of the sft artifact's demonstrations (``stages.sft.data.Demo``), read as it read them."""
     from stages.sft import DAGGER_DIR
     from stages.sft.dagger import load_demos
-    from stages.sft.data import load_demo, pairs
+    from stages.sft.data import load_demo
 
     if part not in PARTS:
         raise ValueError(f"unknown demonstration part {part!r}; expected one of {PARTS}")
@@ -35,4 +43,4 @@ def sft_pairs(sft_dir: Path, sft_info: dict, dataset, store, obs_fn, part: str) 
     dagger = Path(sft_dir) / DAGGER_DIR
     if part == "train" and dagger.is_dir():  # sft.dagger_rounds: the planner's continuations were trained on too
         demos += load_demos(dagger)
-    return pairs(demos, obs_fn) if demos else None
+    return demos

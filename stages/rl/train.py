@@ -36,6 +36,8 @@ def train(ctx, cfg, inp) -> dict:
     envs = inp.training_envs(tasks)
     ctx.log.info("rl: reward %s, %d training environments of tasks %s", cfg.reward, len(envs), tasks)
     ppo_envs = envs
+    if cfg.imagined_bc_epochs:  # a world-model reward (the config's validator): the gate reads the adapted policy
+        metrics.update(_imagined_bc(ctx, cfg, inp))
     if cfg.calibration_ratio:  # a world-model reward (the config's validator): PPO's tasks pass the gate
         ppo_envs = _calibration_gate(ctx, cfg, inp, envs, metrics)
     metrics["train_environments"] = len(ppo_envs)
@@ -93,6 +95,8 @@ def train(ctx, cfg, inp) -> dict:
 
     # ---- PPO from the SFT policy -------------------------------------------------------------------
     model = make_ppo(env, cfg, inp.sft_policy, inp.sft_info, inp.device)
+    if cfg.imagined_bc_epochs:  # the policy PPO starts from, for evaluation on its own
+        model.save(ctx.out / "imagined_bc_policy.zip")
     if cfg.demo_bc_batches:
         model.demo_bc = DemoBC.from_sft(ctx.input("sft"), inp.sft_info, inp.dataset, inp.store, inp.obs_fn,
                                         batches=cfg.demo_bc_batches, batch_size=model.batch_size,
@@ -234,6 +238,46 @@ def _accept(ctx, cfg, inp, model, initial: dict) -> dict:
             "accept/sft_success": result["sft_success"], "accept/ppo_success": result["ppo_success"],
             "accept/difference": d["diff"], "accept/difference_lo": d["lo"], "accept/difference_hi": d["hi"],
             "accept/kept_ppo": result["kept"] == "ppo"}
+
+
+def _imagined_bc(ctx, cfg, inp) -> dict:
+    """Fine-tune ``inp.sft_policy`` in place on the sft stage's demonstrations and their imagined twins
+    (``stages.rl.imagined_bc``); PPO saves it as ``imagined_bc_policy.zip`` before it learns. Returns its metrics: pair counts and
+    the held-out loss on real and on imagined pairs before and after."""
+    from stages.rl.demonstrations import sft_demos
+    from stages.rl.imagined_bc import imagined_pairs, joined
+    from stages.sft.data import pairs
+    from stages.sft.policy import behaviour_clone, evaluate_pairs
+
+    t0 = time.perf_counter()
+    weights = torch.as_tensor(inp.sft_info["demonstrations"]["loss_weights"], dtype=torch.float32)
+    sets = {}
+    for part in ("train", "val"):
+        demos = sft_demos(ctx.input("sft"), inp.sft_info, inp.dataset, inp.store, part)
+        if not demos:
+            continue
+        with ctx.progress(1, f"rl: imagined BC, imagining the {part} demonstrations", unit="set"):
+            sets[part] = (pairs(demos, inp.obs_fn), imagined_pairs(inp.wm, inp.obs_fn, demos, cfg.imagined_bc_horizon))
+    if "train" not in sets:
+        raise ValueError(f"imagined BC: {ctx.input('sft')}/split.json lists no training demonstrations")
+    policy = inp.sft_policy
+    out = {"imagined_bc/real_pairs": int(len(sets["train"][0][1])), "imagined_bc/imagined_pairs": int(len(sets["train"][1][1]))}
+
+    def held_out(when: str) -> None:
+        if "val" in sets:
+            for name, pr in zip(("real", "imagined"), sets["val"]):
+                out[f"imagined_bc/val_loss_{name}_{when}"] = evaluate_pairs(policy, pr, weights)["loss"]
+
+    held_out("before")
+    val = joined(*sets["val"]) if "val" in sets else None
+    with ctx.progress(cfg.imagined_bc_epochs, "rl: imagined BC, epochs", unit="epoch") as bar:
+        behaviour_clone(policy, joined(*sets["train"]), val, epochs=cfg.imagined_bc_epochs, lr=cfg.imagined_bc_lr,
+                        weight_decay=0.0, batch_size=256, patience=cfg.imagined_bc_epochs, weights=weights,
+                        seed=cfg.seed, keep="last", progress=bar)
+    held_out("after")
+    out["imagined_bc/seconds"] = time.perf_counter() - t0
+    ctx.log.info("rl: imagined BC: %s", out)
+    return out
 
 
 def _calibration_gate(ctx, cfg, inp, envs: list, metrics: dict) -> list:

@@ -2,6 +2,8 @@
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 
 from horizon_probe import start_k_before  # noqa: E402
@@ -29,3 +31,35 @@ def test_demo_actions_are_the_recorded_ones_then_the_last_repeated():
     assert padded.shape == (4, 7)
     np.testing.assert_array_equal(padded[:2], actions[3:5])
     np.testing.assert_array_equal(padded[2:], actions[[4, 4]])
+
+
+@pytest.mark.sim
+def test_restore_puts_the_simulator_where_the_same_actions_led_from_the_same_seed():
+    import numpy as np
+    from horizon_probe import restore, restore_error
+    from stages.collect.sim import default_catalog
+    from stages.common.sim_env import SimSpec, SimTaskEnv
+    from tests.rl.tiny import obs_fn, tiny_tokenizer
+
+    scene = next(s for s in default_catalog().values() if s.split == "ind")
+    spec = SimSpec("push", scene.to_dict())
+    sim = SimTaskEnv([spec], obs_fn(tiny_tokenizer()), max_steps=50, action_repeat=1)
+    try:
+        restore(sim, spec, 7, np.zeros((0, 7), np.float32))  # the episode's reset, as collect's
+        u = sim.env.unwrapped
+        actions = []
+        for t in range(12):  # down to the object and through it: contact
+            a = np.zeros(7, np.float32)
+            a[:3] = np.clip((u.obj.pose.p[0].numpy() + [0.0, 0.06 * (t > 6), 0.0] - u.agent.tcp.pose.p[0].numpy()) / 0.02, -1, 1)
+            a[6] = -1.0
+            sim.step(a)
+            actions.append(a)
+        tcp, obj = u.agent.tcp.pose.p[0].numpy().copy(), u.obj.pose.raw_pose[0].numpy().copy()
+        tokens = sim.tokens.clone()
+        restore(sim, spec, 7, np.stack(actions))
+        assert restore_error(sim, np.concatenate([tcp, [1, 0, 0, 0]]), obj) == (0.0, 0.0)
+        assert (sim.tokens == tokens).all()
+        restore(sim, spec, 7, np.stack(actions[:6]))  # fewer actions: elsewhere
+        assert restore_error(sim, np.concatenate([tcp, [1, 0, 0, 0]]), obj)[0] > 1.0
+    finally:
+        sim.close()
