@@ -383,6 +383,21 @@ def test_branched_starts_lie_before_success_and_episodes_end_at_the_branch_horiz
     assert all(e["task"] and e["env"].startswith(e["task"] + "/") for e in episodes)  # where each episode ran
 
 
+def test_imagined_bc_fine_tunes_the_policy_ppo_starts_from_and_saves_it(store):
+    import torch
+
+    from stages.sft.policy import POLICY_FILE, flat_params, load_policy
+
+    cli(store, "run", "--profile", "toy", "--until", "rl", "--set", "rl.imagined_bc_epochs=2", "--set", "rl.precision_envs=0")
+    rl = artifact(store, "rl")
+    m = json.loads((rl / "metrics.json").read_text())
+    assert m["imagined_bc/real_pairs"] > 0 and m["imagined_bc/imagined_pairs"] > 0
+    assert m["imagined_bc/imagined_pairs"] < m["imagined_bc/real_pairs"]  # a demonstration's first frame has no twin
+    adapted, sft = load_policy(rl / "imagined_bc_policy.zip"), load_policy(artifact(store, "sft") / POLICY_FILE)
+    assert not torch.equal(flat_params(adapted), flat_params(sft))  # the start PPO got is not SFT's
+    assert "rl: imagined BC" in (rl / "log.txt").read_text()
+
+
 def test_the_calibration_gate_trains_ppo_on_the_tasks_it_keeps(store):
     fail = subprocess.run([sys.executable, "-m", "pipeline", "run", "--profile", "toy", "--until", "rl", "--store", str(store),
                            "--set", "rl.calibration_ratio=0.5", "--set", "rl.precision_envs=0"],
