@@ -63,3 +63,25 @@ def test_restore_puts_the_simulator_where_the_same_actions_led_from_the_same_see
         assert restore_error(sim, np.concatenate([tcp, [1, 0, 0, 0]]), obj)[0] > 1.0
     finally:
         sim.close()
+
+
+def test_one_step_frame_is_the_model_step_after_the_real_history():
+    import numpy as np
+    import torch
+    from closed_loop_divergence import one_step_frame
+    from tests.rl.tiny import frames, tiny_action_wm, tiny_tokenizer
+
+    tok = tiny_tokenizer()
+    wm = tiny_action_wm(tok)
+    third, wrist = frames(4)
+    tokens = tok.encode(third, wrist).numpy()  # (4, h, w): a real history of 3 steps
+    actions = np.random.default_rng(0).uniform(-1, 1, (3, 7)).astype(np.float32)
+    roll = wm.rollout(1)
+    roll.reset(torch.as_tensor(tokens[:1]).long())
+    for u in range(2):
+        roll.step(torch.as_tensor(actions[u:u + 1]), next_tokens=torch.as_tensor(tokens[u + 1:u + 2]).long())
+    expected = roll.step(torch.as_tensor(actions[2:3])).tokens[0].numpy()
+    np.testing.assert_array_equal(one_step_frame(wm, tokens, actions, 3), expected)
+    roll = wm.rollout(1)
+    roll.reset(torch.as_tensor(tokens[:1]).long())
+    np.testing.assert_array_equal(one_step_frame(wm, tokens, actions, 1), roll.step(torch.as_tensor(actions[:1])).tokens[0].numpy())
