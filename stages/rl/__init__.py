@@ -140,7 +140,8 @@ class Config(BaseModel):
                                     "(each demonstration imagined under its own actions, restarted from the real frame "
                                     "every imagined_bc_horizon steps: stages/rl/imagined_bc.py), so the policy acts on "
                                     "the world model's frames as on the simulator's (world-model rewards only)")
-    imagined_bc_horizon: int = Field(8, ge=1, description="imagined BC: steps imagined from a real frame before the next restart")
+    imagined_bc_horizon: int = Field(8, ge=1, description="imagined BC: steps imagined from a real frame before the next "
+                                     "restart (32 made the adapted policy itself worse in ManiSkill: docs/rl.md)")
     imagined_bc_lr: float = Field(3e-4, gt=0, description="imagined BC: peak AdamW learning rate (cosine decay to 0)")
     num_envs: int = Field(16, ge=1, description="world-model environments stepped as one batch")
     wm_dtype: Literal["fp32", "bf16", "auto"] = Field(

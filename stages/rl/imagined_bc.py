@@ -15,6 +15,11 @@ the proprioception head's chained estimate: what the policy reads inside the wor
 steps into an episode). The policy is then fine-tuned with the sft stage's loss on the real pairs and
 their imagined twins together (the demonstrated action is the target for both: the imagined frame
 pictures the state the action was taken in).
+
+Measured on seed 0 (docs/RESULTS.md, session 96, predictions 29-31): with restarts every 8 steps the
+closed loop's move to aim from 5 steps away rose from 7 to 21 of 32 and the adapted policy equals SFT in
+ManiSkill, but from first frames the calibration gate still kept pull alone and PPO gained nothing; with
+restarts every 32 steps the adapted policy itself lost 0.05-0.07. Off by default (``rl.imagined_bc_epochs: 0``).
 """
 from __future__ import annotations
 
