@@ -256,8 +256,9 @@ def _imagined_bc(ctx, cfg, inp) -> dict:
         demos = sft_demos(ctx.input("sft"), inp.sft_info, inp.dataset, inp.store, part)
         if not demos:
             continue
-        with ctx.progress(1, f"rl: imagined BC, imagining the {part} demonstrations", unit="set"):
+        with ctx.progress(1, f"rl: imagined BC, imagining the {part} demonstrations", unit="set") as bar:
             sets[part] = (pairs(demos, inp.obs_fn), imagined_pairs(inp.wm, inp.obs_fn, demos, cfg.imagined_bc_horizon))
+            bar.update(1)
     if "train" not in sets:
         raise ValueError(f"imagined BC: {ctx.input('sft')}/split.json lists no training demonstrations")
     policy = inp.sft_policy
