@@ -1,7 +1,7 @@
 """Behaviour cloning on imagined observations: the SFT policy taught to act on the world model's frames.
 
-The SFT policy succeeds from a demonstration's state 5 policy steps before its success in 30 of 32 move-to-aim
-starts in ManiSkill, and the action world model fed the actions it took there shows 30 of those 30
+On seed 0, the SFT policy succeeds from a demonstration's state 5 policy steps before its success in 30 of 32
+move-to-aim starts in ManiSkill (28-30 over seeds 0-2), and the action world model fed the actions it took there shows 30 of those 30
 successes; acting on its own imagined frames from the same state it is shown succeeding in 7
 (``scripts/horizon_probe.py --actions sim``, docs/RESULTS.md, session 96). The model pictures what the
 policy does; the policy does something else when it reads the model's frames and the proprioception
