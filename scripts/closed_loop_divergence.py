@@ -15,10 +15,8 @@ simulator and as the proprioception head has chained it in the closed loop.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -51,26 +49,16 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-    from horizon_probe import restore
-    from stages.common.sim_env import sim_over
-    from stages.rl import Config
-    from stages.rl.inputs import RLInputs
-    from stages.sft.policy import act, load_policy
+    from horizon_probe import probe_inputs, restore, sim_by_env, successful_demos
+    from stages.sft.policy import act
 
     dirs = {name: getattr(args, name) for name in STAGES}
-    inp = RLInputs.load(SimpleNamespace(input=lambda name: dirs[name], device="cpu"), Config())
-    if args.policy is not None:
-        inp = dataclasses.replace(inp, sft_policy=load_policy(args.policy))
+    inp = probe_inputs(dirs, args.policy)
     policy, wm, obs_fn = inp.sft_policy, inp.wm, inp.obs_fn
-    policy.set_training_mode(False)
-    sim, spec_list = sim_over(dirs["collect"], obs_fn, inp.envs, max_steps=args.steps, frame_skip=inp.frame_skip, seed=args.seed)
-    specs = {e.env_id: sp for e, sp in zip(inp.envs, spec_list)}
-    train = set(inp.split["train"])
+    sim, specs = sim_by_env(inp, dirs["collect"], args.steps, args.seed)
     rng = np.random.default_rng(args.seed)
     for task in args.tasks:
-        demos = [(e, i) for e in inp.envs if e.task == task and e.split == "ind" for i in e.episodes
-                 if i in train and inp.meta[i].success]
-        pick = [demos[j] for j in sorted(rng.choice(len(demos), size=min(args.per_task, len(demos)), replace=False))]
+        pick = successful_demos(inp, task, args.per_task, rng)
         gaps = {"closed loop": [], "one-step frame": [], "one-step proprioception": []}
         heights = []
         for e, i in pick:

@@ -53,6 +53,37 @@ def demo_actions(actions: np.ndarray, start: int, steps: int) -> np.ndarray:
     return np.concatenate([a, np.repeat(a[-1:], steps - len(a), axis=0)]) if len(a) < steps else a
 
 
+def probe_inputs(dirs: dict, policy_file: Path | None = None):
+    """The rl stage's inputs over the artifact directories ``dirs`` (CPU), with the policy of ``policy_file``
+    instead of the sft artifact's when given (it must observe as that policy does), set to act deterministically."""
+    from stages.rl import Config
+    from stages.rl.inputs import RLInputs
+
+    inp = RLInputs.load(SimpleNamespace(input=lambda name: dirs[name], device="cpu"), Config())
+    if policy_file is not None:
+        from stages.sft.policy import load_policy
+
+        inp = dataclasses.replace(inp, sft_policy=load_policy(policy_file))
+    inp.sft_policy.set_training_mode(False)  # deterministic actions, as the gate
+    return inp
+
+
+def successful_demos(inp, task: str, n: int, rng: np.random.Generator) -> list:
+    """Up to ``n`` (environment, episode id) of ``task``'s successful IND training demonstrations (a choice by ``rng``)."""
+    train = set(inp.split["train"])
+    demos = [(e, i) for e in inp.envs if e.task == task and e.split == "ind" for i in e.episodes
+             if i in train and inp.meta[i].success]
+    return [demos[j] for j in sorted(rng.choice(len(demos), size=min(n, len(demos)), replace=False))]
+
+
+def sim_by_env(inp, collect_dir: Path, max_steps: int, seed: int):
+    """(a ``SimTaskEnv`` over every environment of ``inp``, their ``SimSpec`` by environment id)."""
+    from stages.common.sim_env import sim_over
+
+    sim, spec_list = sim_over(collect_dir, inp.obs_fn, inp.envs, max_steps=max_steps, frame_skip=inp.frame_skip, seed=seed)
+    return sim, {e.env_id: sp for e, sp in zip(inp.envs, spec_list)}
+
+
 def restore(sim, spec, seed: int, control_actions: np.ndarray) -> dict:
     """Put ``sim`` (a ``SimTaskEnv``) in a recorded episode's state after ``control_actions`` (c, 7): reset
     ``spec``'s scene with the episode's ``seed`` and step the actions unrendered (collect recorded them
@@ -166,30 +197,17 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-    from stages.rl import Config
     from stages.rl.calibration import imagined_successes
-    from stages.rl.inputs import RLInputs
 
     dirs = {name: getattr(args, name) for name in STAGES}
-    inp = RLInputs.load(SimpleNamespace(input=lambda name: dirs[name], device="cpu"), Config())
-    if args.policy is not None:
-        from stages.sft.policy import load_policy
-
-        inp = dataclasses.replace(inp, sft_policy=load_policy(args.policy))
-    inp.sft_policy.set_training_mode(False)  # deterministic actions, as the gate
-    train = set(inp.split["train"])
+    inp = probe_inputs(dirs, args.policy)
     rng = np.random.default_rng(args.seed)
     sim = specs = None
     if args.actions == "sim":
-        from stages.common.sim_env import sim_over
-
-        sim, spec_list = sim_over(dirs["collect"], inp.obs_fn, inp.envs, max_steps=1, frame_skip=inp.frame_skip, seed=args.seed)
-        specs = {e.env_id: sp for e, sp in zip(inp.envs, spec_list)}
+        sim, specs = sim_by_env(inp, dirs["collect"], 1, args.seed)
     rows = []
     for task in inp.tasks:
-        demos = [(e, i) for e in inp.envs if e.task == task and e.split == "ind" for i in e.episodes
-                 if i in train and inp.meta[i].success]
-        pick = [demos[j] for j in sorted(rng.choice(len(demos), size=min(args.per_task, len(demos)), replace=False))]
+        pick = successful_demos(inp, task, args.per_task, rng)
         # one episode's starts before its success: an Environment holding that episode alone
         per_episode = [inp.starts([dataclasses.replace(e, episodes=[i])], any_frame=True) for e, i in pick]
         for k in args.k:
