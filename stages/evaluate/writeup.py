@@ -26,6 +26,12 @@ METHODS = {
     "embedding_gated": "PPO in world model (embedding reward head), calibration-gated tasks",
     "proxy_gated": "PPO in world model (proxy reward model), calibration-gated tasks",
 }
+# PPO in the world model's options that change what it trains on, as stages.rl.method_of suffixes them
+VARIANTS = {"_branched": "episodes branched from mid-demonstration frames",
+            "_ibc": "after behaviour cloning on imagined demonstrations"}
+for _base in ("wm", "embedding", "proxy", "wm_gated", "embedding_gated", "proxy_gated"):
+    for _suffix in ("_branched", "_ibc", "_branched_ibc"):
+        METHODS[_base + _suffix] = ", ".join([METHODS[_base], *[VARIANTS[v] for v in VARIANTS if v in _suffix]])
 
 
 def method_label(policy: str, method: str) -> str:

@@ -311,7 +311,8 @@ def run(ctx) -> None:
     metrics = train(ctx, cfg, inputs)
     facts = {"reward": cfg.reward, "success_payout": cfg.success_payout,
              "rule_terms": cfg.rule_terms if cfg.reward == "rule" else None, "algorithm": cfg.algorithm,
-             "method": method_of(cfg.reward, cfg.rule_terms, cfg.algorithm, cfg.fbc_select, cfg.calibration_ratio),
+             "method": method_of(cfg.reward, cfg.rule_terms, cfg.algorithm, cfg.fbc_select, cfg.calibration_ratio,
+                                 cfg.branch_horizon, cfg.imagined_bc_epochs),
              "fbc_select": cfg.fbc_select, "calibration_ratio": cfg.calibration_ratio}
     (ctx.out / RL_JSON).write_text(json.dumps(facts) + "\n")
     ctx.write_metrics(metrics)
@@ -334,18 +335,20 @@ def unread_needs(cfg: Config) -> list[str]:
 
 
 def method_of(reward: str, rule_terms: str, algorithm: str = "ppo", fbc_select: str = "success",
-              calibration_ratio: float = 0.0) -> str:
+              calibration_ratio: float = 0.0, branch_horizon: int = 0, imagined_bc_epochs: int = 0) -> str:
     """The method a run stands for in tables: the reward module, with ``rule`` split by what it pays
     (``rule``: success alone, the default; ``rule_dense``: the task's dense reward); filtered BC
     (``algorithm: filtered_bc``) is ``<reward>_fbc`` (its reward only names the environment and its success),
-    and its control that imitates random episodes (``fbc_select: random``) ``<reward>_fbc_random``; PPO
-    behind the calibration gate (``calibration_ratio`` > 0, world-model rewards only) is ``<reward>_gated``,
-    so a sweep over the gate keeps its two arms apart."""
+    and its control that imitates random episodes (``fbc_select: random``) ``<reward>_fbc_random``. PPO in
+    the world model carries a suffix per option that changes what it trains on, in this order: ``_gated``
+    (the calibration gate, ``calibration_ratio`` > 0), ``_branched`` (episodes from mid-demonstration
+    frames, ``branch_horizon`` > 0), ``_ibc`` (imagined behaviour cloning first, ``imagined_bc_epochs`` > 0),
+    so a sweep over any of them keeps its arms apart (``wm_gated_ibc``)."""
     if algorithm == "filtered_bc":
         return f"{reward}_fbc" + ("_random" if fbc_select == "random" else "")
-    if calibration_ratio > 0:
-        return f"{reward}_gated"
-    return "rule_dense" if reward == "rule" and rule_terms == "dense" else reward
+    base = "rule_dense" if reward == "rule" and rule_terms == "dense" else reward
+    return (base + ("_gated" if calibration_ratio > 0 else "") + ("_branched" if branch_horizon > 0 else "")
+            + ("_ibc" if imagined_bc_epochs > 0 else ""))
 
 
 def read_rl_facts(rl_dir: str | Path) -> dict:

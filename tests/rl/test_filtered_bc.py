@@ -90,6 +90,9 @@ def test_own_episodes_follow_the_demonstrations():
 def test_filtered_bc_is_named_and_checked_by_its_config():
     assert method_of("rule", "success", "filtered_bc") == "rule_fbc" and method_of("wm", "success", "filtered_bc") == "wm_fbc"
     assert method_of("rule", "dense") == "rule_dense"
+    assert method_of("wm", "success", calibration_ratio=0.5) == "wm_gated"
+    assert method_of("wm", "success", calibration_ratio=0.5, imagined_bc_epochs=20) == "wm_gated_ibc"
+    assert method_of("wm", "success", branch_horizon=10, imagined_bc_epochs=20) == "wm_branched_ibc"
     assert method_of("wm", "success", "filtered_bc", "random") == "wm_fbc_random"
     with pytest.raises(ValueError, match="set rl.algorithm=filtered_bc"):
         Config(algorithm="ppo", fbc_select="random")
