@@ -22,6 +22,8 @@ METHODS = {
     "wm_fbc": "Filtered BC in world model (its done-head successes imitated)",
     "rule_fbc_random": "Filtered BC control in ManiSkill (random own episodes imitated)",
     "wm_fbc_random": "Filtered BC control in world model (random own episodes imitated)",
+    "rule_fbc_none": "Filtered BC control in ManiSkill (demonstrations alone refitted)",
+    "wm_fbc_none": "Filtered BC control in world model (demonstrations alone refitted)",
     "wm_gated": "PPO in world model (WM reward, ours), calibration-gated tasks",
     "embedding_gated": "PPO in world model (embedding reward head), calibration-gated tasks",
     "proxy_gated": "PPO in world model (proxy reward model), calibration-gated tasks",

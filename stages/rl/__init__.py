@@ -161,10 +161,11 @@ class Config(BaseModel):
     fbc_epochs: int = Field(100, ge=1, description="filtered_bc: epochs of the sft recipe, kept at the last one")
     fbc_rounds: int = Field(1, ge=1, description="filtered_bc: rounds of play and fit, the budget split evenly; each "
                             "round's player is the previous round's fit")
-    fbc_select: Literal["success", "random"] = Field(
+    fbc_select: Literal["success", "random", "none"] = Field(
         "success", description="filtered_bc: which played episodes are imitated. success: those the environment calls "
         "successes; random (a control): episodes drawn at random whatever their outcome, as many steps as the "
-        "round's successes have, so the fit sees as much own data without the environment's selection")
+        "round's successes have, so the fit sees as much own data without the environment's selection; none (a "
+        "control): no played episode, the refit on the demonstrations alone, so what the refit itself does is seen")
     # PPO
     total_timesteps: int = Field(20000, ge=1, description="environment steps (PPO's; filtered_bc's play)")
     n_steps: int = Field(64, ge=2, description="rollout length per env per PPO update")
@@ -339,13 +340,14 @@ def method_of(reward: str, rule_terms: str, algorithm: str = "ppo", fbc_select: 
     """The method a run stands for in tables: the reward module, with ``rule`` split by what it pays
     (``rule``: success alone, the default; ``rule_dense``: the task's dense reward); filtered BC
     (``algorithm: filtered_bc``) is ``<reward>_fbc`` (its reward only names the environment and its success),
-    and its control that imitates random episodes (``fbc_select: random``) ``<reward>_fbc_random``. PPO in
+    its control that imitates random episodes (``fbc_select: random``) ``<reward>_fbc_random`` and the one that
+    imitates none (``fbc_select: none``, the refit alone) ``<reward>_fbc_none``. PPO in
     the world model carries a suffix per option that changes what it trains on, in this order: ``_gated``
     (the calibration gate, ``calibration_ratio`` > 0), ``_branched`` (episodes from mid-demonstration
     frames, ``branch_horizon`` > 0), ``_ibc`` (imagined behaviour cloning first, ``imagined_bc_epochs`` > 0),
     so a sweep over any of them keeps its arms apart (``wm_gated_ibc``)."""
     if algorithm == "filtered_bc":
-        return f"{reward}_fbc" + ("_random" if fbc_select == "random" else "")
+        return f"{reward}_fbc" + ("" if fbc_select == "success" else f"_{fbc_select}")
     base = "rule_dense" if reward == "rule" and rule_terms == "dense" else reward
     return (base + ("_gated" if calibration_ratio > 0 else "") + ("_branched" if branch_horizon > 0 else "")
             + ("_ibc" if imagined_bc_epochs > 0 else ""))

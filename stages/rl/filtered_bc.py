@@ -19,6 +19,8 @@ imitates the episodes the done head wrongly calls successes (``imagined/<split>/
 ``fbc_select: random`` is the control that says what the selection adds: the same play, but the
 imitated episodes are drawn at random from all those played, whatever their outcome, until they
 hold as many steps as the round's successes (``random_like``): as much own data, no selection.
+``fbc_select: none`` is the control that says what the refit itself does: the same play (recorded, never
+imitated) and the same fit, on the demonstrations alone.
 """
 from __future__ import annotations
 

@@ -178,8 +178,8 @@ def _filtered_bc(ctx, cfg, inp, raw_env, env, metrics: dict):
         unfinished_from = step + played.steps if k < cfg.fbc_rounds - 1 else played.budget_reached_at
         step += played.steps
         episodes += played.episodes
-        picked = (played.successes if cfg.fbc_select == "success"
-                  else random_like(played, np.random.default_rng([cfg.seed, k])))  # its own stream: play unchanged
+        picked = {"success": lambda: played.successes, "none": list,  # none: the refit alone, a control
+                  "random": lambda: random_like(played, np.random.default_rng([cfg.seed, k]))}[cfg.fbc_select]()
         own += picked
         train = joined(demos, own)
         with ctx.progress(cfg.fbc_epochs, f"rl: filtered BC round {k + 1}/{cfg.fbc_rounds}, fit", unit="epoch") as bar:

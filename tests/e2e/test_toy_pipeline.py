@@ -187,20 +187,20 @@ def test_filtered_bc_imitates_its_own_simulator_successes_and_ships_a_policy_eva
     assert not (ev / "extreme_actions.png").exists() and shown(store, "evaluate", *sets, "--set", "train_wm.dim=48") == ev
 
 
-def test_filtered_bcs_random_control_plays_the_same_episodes_and_imitates_as_many_steps_whatever_the_outcome(store):
+def test_filtered_bcs_controls_play_the_same_episodes_and_imitate_random_ones_or_none(store):
     base = ["--set", "rl.algorithm=filtered_bc", "--set", "rl.reward=wm", "--set", "rl.precision_envs=0",
             "--set", "rl.diagnostics=none"]
-    control = [*base, "--set", "rl.fbc_select=random"]
     runs = {}
-    for name, sets in (("success", base), ("random", control)):
+    for name in ("success", "random", "none"):
+        sets = [*base, "--set", f"rl.fbc_select={name}"]
         cli(store, "run", "--profile", "toy", "--until", "rl", *sets)
         runs[name] = shown(store, "rl", *sets)
-    assert runs["success"] != runs["random"]
-    assert [json.loads((runs[k] / "rl.json").read_text())["method"] for k in ("success", "random")] == ["wm_fbc", "wm_fbc_random"]
+    assert len(set(runs.values())) == 3
+    assert [json.loads((runs[k] / "rl.json").read_text())["method"] for k in runs] == ["wm_fbc", "wm_fbc_random", "wm_fbc_none"]
     fields = ("t", "start", "length", "success", "env")
     played = {k: [{f: e[f] for f in fields} for e in json.loads((d / "episodes.json").read_text())] for k, d in runs.items()}
-    assert played["success"] == played["random"] and played["success"]  # the same seed plays the same episodes
-    chosen, drawn = (json.loads((runs[k] / "filtered_bc.json").read_text())["rounds"][0] for k in ("success", "random"))
+    assert played["success"] == played["random"] == played["none"] and played["success"]  # the same seed, the same play
+    chosen, drawn, none = (json.loads((runs[k] / "filtered_bc.json").read_text())["rounds"][0] for k in runs)
     wins = sum(e["success"] for e in played["success"])
     assert chosen["picked_episodes"] == chosen["picked_successes"] == chosen["successes"] == wins
     assert chosen["own_pairs"] == sum(e["length"] for e in played["success"] if e["success"])
@@ -209,6 +209,10 @@ def test_filtered_bcs_random_control_plays_the_same_episodes_and_imitates_as_man
         assert chosen["own_pairs"] <= drawn["own_pairs"] < chosen["own_pairs"] + 15
     else:
         assert drawn["picked_episodes"] == drawn["own_pairs"] == 0
+    # the refit alone: the same play and fit, nothing of its own imitated
+    assert none["select"] == "none" and none["successes"] == wins
+    assert none["picked_episodes"] == none["imitated_episodes"] == none["own_pairs"] == 0
+    assert none["demonstration_pairs"] == chosen["demonstration_pairs"] and none["epochs"] == chosen["epochs"]
 
 
 def test_a_policy_reading_both_frames_plays_learns_in_the_world_model_and_is_evaluated(store):

@@ -76,7 +76,7 @@ def test_gated_ppo_is_its_own_method_and_every_valid_config_has_a_table_label():
     assert method_of("wm", "success", calibration_ratio=0.0) == "wm"  # the gate off: the same label as before
     methods = set()
     for reward, terms, algorithm, select, ratio, branch, ibc in itertools.product(
-            REWARDS, ("success", "dense"), ("ppo", "filtered_bc"), ("success", "random"), (0.0, 0.5), (0, 10), (0, 2)):
+            REWARDS, ("success", "dense"), ("ppo", "filtered_bc"), ("success", "random", "none"), (0.0, 0.5), (0, 10), (0, 2)):
         try:
             cfg = Config(reward=reward, rule_terms=terms, algorithm=algorithm, fbc_select=select, calibration_ratio=ratio,
                          branch_horizon=branch, imagined_bc_epochs=ibc)
@@ -84,7 +84,7 @@ def test_gated_ppo_is_its_own_method_and_every_valid_config_has_a_table_label():
             continue
         methods.add(method_of(cfg.reward, cfg.rule_terms, cfg.algorithm, cfg.fbc_select, cfg.calibration_ratio,
                               cfg.branch_horizon, cfg.imagined_bc_epochs))
-    assert {"wm", "wm_gated", "embedding_gated", "proxy_gated", "rule", "rule_dense", "wm_fbc",
+    assert {"wm", "wm_gated", "embedding_gated", "proxy_gated", "rule", "rule_dense", "wm_fbc", "wm_fbc_none",
             "wm_gated_ibc", "wm_branched", "wm_branched_ibc"} <= methods
     assert methods <= set(METHODS), sorted(methods - set(METHODS))  # evaluate and the sweep report label each one
 

@@ -94,8 +94,10 @@ def test_filtered_bc_is_named_and_checked_by_its_config():
     assert method_of("wm", "success", calibration_ratio=0.5, imagined_bc_epochs=20) == "wm_gated_ibc"
     assert method_of("wm", "success", branch_horizon=10, imagined_bc_epochs=20) == "wm_branched_ibc"
     assert method_of("wm", "success", "filtered_bc", "random") == "wm_fbc_random"
-    with pytest.raises(ValueError, match="set rl.algorithm=filtered_bc"):
-        Config(algorithm="ppo", fbc_select="random")
+    assert method_of("rule", "success", "filtered_bc", "none") == "rule_fbc_none"
+    for select in ("random", "none"):
+        with pytest.raises(ValueError, match="set rl.algorithm=filtered_bc"):
+            Config(algorithm="ppo", fbc_select=select)
     with pytest.raises(ValueError, match="use reward rule or wm"):
         Config(algorithm="filtered_bc", reward="proxy")
     with pytest.raises(ValueError, match="plays every training environment"):
