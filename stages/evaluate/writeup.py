@@ -34,6 +34,9 @@ VARIANTS = {"_branched": "episodes branched from mid-demonstration frames",
 for _base in ("wm", "embedding", "proxy", "wm_gated", "embedding_gated", "proxy_gated"):
     for _suffix in ("_branched", "_ibc", "_branched_ibc"):
         METHODS[_base + _suffix] = ", ".join([METHODS[_base], *[VARIANTS[v] for v in VARIANTS if v in _suffix]])
+# either algorithm in the world model with rl.done_persist > 1
+for _label in [m for m in METHODS if not m.startswith("rule")]:
+    METHODS[_label + "_persist"] = METHODS[_label] + ", success held for several imagined steps"
 
 
 def method_label(policy: str, method: str) -> str:

@@ -122,6 +122,10 @@ class Config(BaseModel):
     guard_replay_envs: int = Field(64, ge=1, description="IND training environments imagined and replayed per refit")
     # environment
     theta_done: float = Field(0.5, gt=0, lt=1, description="done-head threshold that terminates a WM episode")
+    done_persist: int = Field(1, ge=1, description="a world-model episode terminates as a success once the done head "
+                              "(and the guard, if on) has stayed at or above theta_done for this many consecutive "
+                              "steps; 1: at the first such step. The calibration gate and the imagined-success check "
+                              "count imagined successes the same way")
     max_episode_steps: int = Field(75, ge=1, description="truncation horizon in world-model steps (= policy steps; "
                                    "planner demos take ~100-280 control steps = 25-70 steps at frame_skip 4)")
     branch_horizon: int = Field(0, ge=0, description="0: world-model episodes start at the first frames of IND "
@@ -280,6 +284,9 @@ class Config(BaseModel):
         if self.fbc_select != "success" and self.algorithm != "filtered_bc":
             raise ValueError(f"fbc_select={self.fbc_select!r} chooses what filtered BC imitates, but algorithm is "
                              f"{self.algorithm!r}: set rl.algorithm=filtered_bc or leave fbc_select at success")
+        if self.done_persist > 1 and self.reward == "rule":
+            raise ValueError(f"done_persist={self.done_persist} holds the world model's done head for several steps; "
+                             "reward rule trains in ManiSkill, whose success check has no done head: leave it at 1")
         if self.algorithm == "filtered_bc" and self.guard_replay_rounds:
             raise ValueError("guard_replay_rounds refits the guard during PPO; algorithm filtered_bc runs no PPO: set it to 0")
         return self
@@ -313,8 +320,8 @@ def run(ctx) -> None:
     facts = {"reward": cfg.reward, "success_payout": cfg.success_payout,
              "rule_terms": cfg.rule_terms if cfg.reward == "rule" else None, "algorithm": cfg.algorithm,
              "method": method_of(cfg.reward, cfg.rule_terms, cfg.algorithm, cfg.fbc_select, cfg.calibration_ratio,
-                                 cfg.branch_horizon, cfg.imagined_bc_epochs),
-             "fbc_select": cfg.fbc_select, "calibration_ratio": cfg.calibration_ratio}
+                                 cfg.branch_horizon, cfg.imagined_bc_epochs, cfg.done_persist),
+             "fbc_select": cfg.fbc_select, "calibration_ratio": cfg.calibration_ratio, "done_persist": cfg.done_persist}
     (ctx.out / RL_JSON).write_text(json.dumps(facts) + "\n")
     ctx.write_metrics(metrics)
 
@@ -336,7 +343,8 @@ def unread_needs(cfg: Config) -> list[str]:
 
 
 def method_of(reward: str, rule_terms: str, algorithm: str = "ppo", fbc_select: str = "success",
-              calibration_ratio: float = 0.0, branch_horizon: int = 0, imagined_bc_epochs: int = 0) -> str:
+              calibration_ratio: float = 0.0, branch_horizon: int = 0, imagined_bc_epochs: int = 0,
+              done_persist: int = 1) -> str:
     """The method a run stands for in tables: the reward module, with ``rule`` split by what it pays
     (``rule``: success alone, the default; ``rule_dense``: the task's dense reward); filtered BC
     (``algorithm: filtered_bc``) is ``<reward>_fbc`` (its reward only names the environment and its success),
@@ -345,12 +353,14 @@ def method_of(reward: str, rule_terms: str, algorithm: str = "ppo", fbc_select: 
     the world model carries a suffix per option that changes what it trains on, in this order: ``_gated``
     (the calibration gate, ``calibration_ratio`` > 0), ``_branched`` (episodes from mid-demonstration
     frames, ``branch_horizon`` > 0), ``_ibc`` (imagined behaviour cloning first, ``imagined_bc_epochs`` > 0),
-    so a sweep over any of them keeps its arms apart (``wm_gated_ibc``)."""
+    so a sweep over any of them keeps its arms apart (``wm_gated_ibc``). Either algorithm in the world model
+    ends with ``_persist`` when a success must hold for several steps (``done_persist`` > 1): ``wm_fbc_persist``."""
+    persist = "_persist" if done_persist > 1 else ""
     if algorithm == "filtered_bc":
-        return f"{reward}_fbc" + ("" if fbc_select == "success" else f"_{fbc_select}")
+        return f"{reward}_fbc" + ("" if fbc_select == "success" else f"_{fbc_select}") + persist
     base = "rule_dense" if reward == "rule" and rule_terms == "dense" else reward
     return (base + ("_gated" if calibration_ratio > 0 else "") + ("_branched" if branch_horizon > 0 else "")
-            + ("_ibc" if imagined_bc_epochs > 0 else ""))
+            + ("_ibc" if imagined_bc_epochs > 0 else "") + persist)
 
 
 def read_rl_facts(rl_dir: str | Path) -> dict:

@@ -69,21 +69,24 @@ def real_rates(play: list[dict], tasks: list[str]) -> dict[str, tuple[int, int]]
 
 
 @torch.no_grad()
-def imagined_successes(policy, wm, obs_fn, starts: list, steps: int, theta: float, batch: int = 32) -> np.ndarray:
-    """(N,) bool: whether the done head reached ``theta`` within ``steps`` imagined steps of ``policy`` from
-    each ``stages.rl.wm_env.Start``."""
+def imagined_successes(policy, wm, obs_fn, starts: list, steps: int, theta: float, batch: int = 32,
+                       persist: int = 1) -> np.ndarray:
+    """(N,) bool: whether the done head stayed at or above ``theta`` for ``persist`` consecutive steps within
+    ``steps`` imagined steps of ``policy`` from each ``stages.rl.wm_env.Start``."""
     done = np.zeros(len(starts), bool)
     for lo in range(0, len(starts), batch):
         chunk = starts[lo:lo + batch]
         tokens = torch.as_tensor(np.stack([s.tokens for s in chunk]))  # (B, h, w)
         proprio = np.stack([s.proprio for s in chunk])  # (B, 10)
+        held = np.zeros(len(chunk), np.int64)  # (B,) consecutive steps at or above theta
         for s in closed_loop(policy, wm, obs_fn, tokens, proprio, [s.instruction for s in chunk], steps):
-            done[lo:lo + len(chunk)] |= s.out.done_prob.float().cpu().numpy() >= theta
+            held = np.where(s.out.done_prob.float().cpu().numpy() >= theta, held + 1, 0)
+            done[lo:lo + len(chunk)] |= held >= persist
     return done
 
 
 def calibrate(policy, wm, obs_fn, starts_by_task: dict[str, list], play: list[dict], steps: int, theta: float,
-              per_task: int, seed: int, progress=None) -> list[TaskCalibration]:
+              per_task: int, seed: int, progress=None, persist: int = 1) -> list[TaskCalibration]:
     """One ``TaskCalibration`` per task of ``starts_by_task`` ({task: [Start, ...]}), from ``per_task``
     starts of each (a seeded choice) and the play's real rates; ``progress`` (a bar) advances per task."""
     rates = real_rates(play, list(starts_by_task))
@@ -94,7 +97,7 @@ def calibrate(policy, wm, obs_fn, starts_by_task: dict[str, list], play: list[di
         if not starts:
             raise ValueError(f"task {task!r} has no training start to calibrate on")
         pick = [starts[i] for i in sorted(rng.choice(len(starts), size=min(per_task, len(starts)), replace=False))]
-        done = imagined_successes(policy, wm, obs_fn, pick, steps, theta)
+        done = imagined_successes(policy, wm, obs_fn, pick, steps, theta, persist=persist)
         out.append(TaskCalibration(task, int(done.sum()), len(pick), *rates[task]))
         if progress is not None:
             progress.update(1)

@@ -89,7 +89,7 @@ def closed_loop(policy, wm, obs_fn, tokens: torch.Tensor, proprio0: np.ndarray, 
 
 @torch.no_grad()
 def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[int], steps: int,
-                       theta: float, record: dict | None = None, guard=None) -> list[Replay]:
+                       theta: float, record: dict | None = None, guard=None, persist: int = 1) -> list[Replay]:
     """Imagine ``steps`` policy steps from each spec's simulator start, replay them in ``sim``.
 
     sim: a ``SimTaskEnv`` whose ``action_repeat`` is the world model's frame skip.
@@ -101,6 +101,8 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
     environment the replay's proprioception (10,) after steps 1, 2, ... (until it ended).
     guard: a ``stages.rl.guard.Guard`` the environment applies; an imagined success then needs its
     confirmation too (see the module docstring).
+    persist: an imagined success needs that many consecutive steps at or above ``theta`` (the env's
+    ``done_persist``).
     """
     starts, instructions, proprio0 = [], [], []
     sim.keep_frames = True
@@ -162,8 +164,8 @@ def imagine_and_replay(policy, wm, tok, obs_fn, sim, specs: list, seeds: list[in
             if trunc:
                 break
         err = tuple(round(e, 4) for e in err)
-        row = (replay_row(spec.key, probs[i], first_success, theta, err) if guard is None
-               else guarded_row(spec.key, probs[i], confirm[i], first_success, theta, err))
+        row = (replay_row(spec.key, probs[i], first_success, theta, err, persist) if guard is None
+               else guarded_row(spec.key, probs[i], confirm[i], first_success, theta, err, persist))
         row.token_accuracy, row.copy_accuracy = tuple(round(a, 4) for a in acc), tuple(round(c, 4) for c in copy)
         out_rows.append(row)
     sim.keep_frames = False
@@ -197,10 +199,10 @@ def replay_row(env_id: str, probs: np.ndarray, first_success: int, theta: float,
 
 
 def guarded_row(env_id: str, head: np.ndarray, confirm: np.ndarray, first_success: int, theta: float,
-                tcp_error: tuple = ()) -> Replay:
+                tcp_error: tuple = (), persist: int = 1) -> Replay:
     """A row as the guarded environment counts success: the done head (T,) and the guard ensemble's mean
     probability (T,) both at or above ``theta`` at the same step; the head's own probabilities kept."""
-    row = replay_row(env_id, np.minimum(head, confirm), first_success, theta, tcp_error)
+    row = replay_row(env_id, np.minimum(head, confirm), first_success, theta, tcp_error, persist)
     row.head_probs = tuple(round(float(p), 4) for p in head)
     return row
 
@@ -256,11 +258,12 @@ def precision_at(rows: list[Replay], theta: float, persist: int = 1) -> dict:
                                          persist) for r in rows])
 
 
-def precision_head_only(rows: list[Replay], theta: float) -> dict:
+def precision_head_only(rows: list[Replay], theta: float, persist: int = 1) -> dict:
     """``precision_metrics`` from the done head alone, without the guard's veto (rows imagined with a guard)."""
     if any(not r.head_probs for r in rows):
         raise ValueError("precision_head_only needs rows imagined with a guard (their head_probs are empty)")
-    return precision_metrics([replay_row(r.env_id, np.asarray(r.head_probs), r.first_success, theta) for r in rows])
+    return precision_metrics([replay_row(r.env_id, np.asarray(r.head_probs), r.first_success, theta, (), persist)
+                              for r in rows])
 
 
 def precision_metrics(rows: list[Replay]) -> dict:

@@ -83,7 +83,8 @@ def train(ctx, cfg, inp) -> dict:
         raw_env = WorldModelVecEnv(inp.wm, inp.tok, inp.obs_fn, chosen.build(parts, cfg, cfg.num_envs),
                                    starts, num_envs=cfg.num_envs, max_steps=cfg.branch_horizon or cfg.max_episode_steps,
                                    theta_done=cfg.theta_done, seed=cfg.seed, device=inp.device,
-                                   payout_gamma=payout_gamma, guard=guard, dtype=cfg.wm_dtype)
+                                   payout_gamma=payout_gamma, guard=guard, dtype=cfg.wm_dtype,
+                                   done_persist=cfg.done_persist)
     env = normalized_rewards(raw_env, cfg)
     refit = _guard_refit(ctx, cfg, inp, envs, raw_env, fs_fit) if guard is not None and cfg.guard_replay_rounds else None
 
@@ -291,7 +292,7 @@ def _calibration_gate(ctx, cfg, inp, envs: list, metrics: dict) -> list:
     by_task = {t: inp.starts([e for e in envs if e.task == t]) for t in inp.tasks}
     with ctx.progress(len(by_task), "rl: calibration gate (SFT policy imagined per task)", unit="task") as bar:
         table = calibrate(inp.sft_policy, inp.wm, inp.obs_fn, by_task, play, cfg.max_episode_steps, cfg.theta_done,
-                          cfg.calibration_starts, cfg.seed, progress=bar)
+                          cfg.calibration_starts, cfg.seed, progress=bar, persist=cfg.done_persist)
     rows = [c.row(cfg.calibration_ratio) for c in table]
     (ctx.out / "calibration.json").write_text(json.dumps({"ratio": cfg.calibration_ratio, "tasks": rows}, indent=1) + "\n")
     for r in rows:
@@ -328,7 +329,8 @@ def _guard_refit(ctx, cfg, inp, envs: list, raw_env, fs_fit):
         record: dict = {}
         try:
             rows = imagine_and_replay(policy, inp.wm, inp.tok, inp.obs_fn, sim, specs, seeds, cfg.max_episode_steps,
-                                      cfg.theta_done, record=record, guard=raw_env.guard)  # the guard in place now
+                                      cfg.theta_done, record=record, guard=raw_env.guard,  # the guard in place now
+                                      persist=cfg.done_persist)
         finally:
             sim.close()
         return rows, record["hidden"]
@@ -363,16 +365,16 @@ def _imagined_precision(ctx, cfg, inp, policy, guard=None) -> dict:
         try:
             with ctx.progress(len(specs), f"rl: imagined vs replayed ({split})", unit="env") as bar:
                 rows = imagine_and_replay(policy, inp.wm, inp.tok, inp.obs_fn, sim, specs, seeds,
-                                          cfg.max_episode_steps, cfg.theta_done, guard=guard)
+                                          cfg.max_episode_steps, cfg.theta_done, guard=guard, persist=cfg.done_persist)
                 bar.update(len(specs))
         finally:
             sim.close()
         table[split] = [vars(r) for r in rows]
         out.update({f"imagined/{split}/{k}": v for k, v in precision_metrics(rows).items()})
         if guard is not None:  # what the done head alone would have counted
-            out.update({f"imagined/{split}/head_only/{k}": v for k, v in precision_head_only(rows, cfg.theta_done).items()})
+            out.update({f"imagined/{split}/head_only/{k}": v for k, v in precision_head_only(rows, cfg.theta_done, cfg.done_persist).items()})
         for theta in (t for t in STRICTER_THETAS if t > cfg.theta_done):  # what a stricter done threshold would give
-            m = precision_at(rows, theta)
+            m = precision_at(rows, theta, persist=cfg.done_persist)
             out[f"imagined/{split}/imagined_done_at_{theta:g}"] = m["imagined_done"]
             out[f"imagined/{split}/precision_at_{theta:g}"] = m["precision"]
         for k in PERSIST_STEPS:  # what a success held for k imagined steps would give

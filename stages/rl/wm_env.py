@@ -5,7 +5,8 @@ reset: each env samples a training environment (task x scene) and one of its ini
 the robot's proprioception there) from the collected data. step(action): the action is executed
 as in the simulator (``stages.common.action_space``), the action WM predicts the next frame
 (KV-cached, batched) and its proprioception head the robot's next state, the reward module scores
-the frame, ``terminated`` = done head >= theta_done, ``truncated`` = step cap. A terminated step is
+the frame, ``terminated`` = done head >= theta_done (for ``done_persist`` consecutive steps),
+``truncated`` = step cap. A terminated step is
 paid ``success_return`` (the module's maximum for this step and the steps left) when
 ``payout_gamma`` is set. With a ``guard`` (``stages.rl.guard``), the done-head ensemble's
 disagreement is subtracted from every reward and a termination needs its confirmation. Observations come from ``ObservationFn`` (the same function the
@@ -58,7 +59,7 @@ class WorldModelVecEnv(VecEnv):
 
     def __init__(self, wm, tokenizer, obs_fn: ObservationFn, reward: RewardModule, starts: Sequence[Start], *,
                  num_envs: int, max_steps: int, theta_done: float, seed: int = 0, device: str = "cpu",
-                 payout_gamma: float | None = None, guard=None, dtype: str = "fp32"):
+                 payout_gamma: float | None = None, guard=None, dtype: str = "fp32", done_persist: int = 1):
         if not starts:
             raise ValueError("the world-model env needs at least one initial state")
         action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
@@ -66,6 +67,9 @@ class WorldModelVecEnv(VecEnv):
         self.wm, self.tok, self.obs_fn, self.reward = wm, tokenizer, obs_fn, reward
         self.starts, self.max_steps, self.theta_done, self.device = list(starts), max_steps, theta_done, device
         self.payout_gamma, self.guard = payout_gamma, guard  # guard: stages.rl.guard.Guard or None
+        if done_persist < 1:
+            raise ValueError(f"done_persist must be >= 1, got {done_persist}")
+        self.done_persist = done_persist
         # the world model's step and the decoding of its frames run in this precision ("fp32" | "bf16");
         # the proprioception head and the observations stay fp32, the reward module keeps its own
         # (the rl stage gives the LPIPS distance the same wm_dtype)
@@ -78,6 +82,7 @@ class WorldModelVecEnv(VecEnv):
         # under bf16 autocast the cached attention reads keys and values in bf16: keep them so (identical results)
         self.roll = wm.rollout(num_envs, seed=seed, cache_dtype=torch.bfloat16 if self.dtype == "bf16" else torch.float32)
         self.t = np.zeros(num_envs, dtype=np.int64)
+        self.held = np.zeros(num_envs, dtype=np.int64)  # (B,) consecutive steps the success has held so far
         self.proprio = torch.zeros(num_envs, PROPRIO_DIM, device=device)  # (B, 10) each env's robot state
         self._actions: np.ndarray | None = None
         self.stats = {"steps": 0, "episodes": 0, "terminated": 0, "truncated": 0}
@@ -87,6 +92,7 @@ class WorldModelVecEnv(VecEnv):
         for r in rows:
             self.current[r] = self.starts[int(self.rng.integers(len(self.starts)))]
         self.t[rows] = 0
+        self.held[rows] = 0
 
     def _batch(self, tokens: torch.Tensor, done: torch.Tensor, hidden: torch.Tensor,
                rows: np.ndarray | None = None) -> StepBatch:
@@ -160,6 +166,8 @@ class WorldModelVecEnv(VecEnv):
             disagreement, confirmed = self.guard(out.hidden)
             rewards = (rewards - self.guard.coef * self.reward.max_step_reward * disagreement).astype(np.float32)
             terminated &= confirmed
+        self.held = np.where(terminated, self.held + 1, 0)
+        terminated = self.held >= self.done_persist  # done_persist 1: the first step at or above theta_done
         truncated = (self.t >= self.max_steps) & ~terminated
         if self.payout_gamma is not None and terminated.any():
             paid = success_return(self.reward.max_step_reward, self.max_steps - self.t, self.payout_gamma)

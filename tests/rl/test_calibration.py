@@ -51,6 +51,8 @@ def test_imagined_successes_are_where_the_done_head_reached_theta_in_the_closed_
     done = imagined_successes(policy, wm, fn, starts, 4, theta, batch=3)  # two batches, the same rollouts
     assert done.tolist() == (peak >= theta).tolist() and 0 < done.sum() < len(starts)
     assert not imagined_successes(policy, wm, fn, starts, 4, float(peak.max()) + 1e-3).any()
+    assert imagined_successes(policy, wm, fn, starts, 4, 1e-6, persist=4).all()  # held for the whole horizon
+    assert not imagined_successes(policy, wm, fn, starts, 4, 1e-6, persist=5).any()  # longer than the horizon
 
 
 def test_calibrate_rates_each_task_on_its_own_starts(parts):
@@ -75,17 +77,18 @@ def test_gated_ppo_is_its_own_method_and_every_valid_config_has_a_table_label():
     assert method_of("wm", "success", calibration_ratio=0.5) == "wm_gated"
     assert method_of("wm", "success", calibration_ratio=0.0) == "wm"  # the gate off: the same label as before
     methods = set()
-    for reward, terms, algorithm, select, ratio, branch, ibc in itertools.product(
-            REWARDS, ("success", "dense"), ("ppo", "filtered_bc"), ("success", "random", "none"), (0.0, 0.5), (0, 10), (0, 2)):
+    for reward, terms, algorithm, select, ratio, branch, ibc, persist in itertools.product(
+            REWARDS, ("success", "dense"), ("ppo", "filtered_bc"), ("success", "random", "none"), (0.0, 0.5), (0, 10),
+            (0, 2), (1, 3)):
         try:
             cfg = Config(reward=reward, rule_terms=terms, algorithm=algorithm, fbc_select=select, calibration_ratio=ratio,
-                         branch_horizon=branch, imagined_bc_epochs=ibc)
+                         branch_horizon=branch, imagined_bc_epochs=ibc, done_persist=persist)
         except ValidationError:
             continue
         methods.add(method_of(cfg.reward, cfg.rule_terms, cfg.algorithm, cfg.fbc_select, cfg.calibration_ratio,
-                              cfg.branch_horizon, cfg.imagined_bc_epochs))
+                              cfg.branch_horizon, cfg.imagined_bc_epochs, cfg.done_persist))
     assert {"wm", "wm_gated", "embedding_gated", "proxy_gated", "rule", "rule_dense", "wm_fbc", "wm_fbc_none",
-            "wm_gated_ibc", "wm_branched", "wm_branched_ibc"} <= methods
+            "wm_gated_ibc", "wm_branched", "wm_branched_ibc", "wm_fbc_persist", "wm_gated_persist"} <= methods
     assert methods <= set(METHODS), sorted(methods - set(METHODS))  # evaluate and the sweep report label each one
 
 

@@ -95,6 +95,10 @@ def test_filtered_bc_is_named_and_checked_by_its_config():
     assert method_of("wm", "success", branch_horizon=10, imagined_bc_epochs=20) == "wm_branched_ibc"
     assert method_of("wm", "success", "filtered_bc", "random") == "wm_fbc_random"
     assert method_of("rule", "success", "filtered_bc", "none") == "rule_fbc_none"
+    assert method_of("wm", "success", "filtered_bc", done_persist=3) == "wm_fbc_persist"
+    assert method_of("wm", "success", calibration_ratio=0.5, imagined_bc_epochs=20, done_persist=2) == "wm_gated_ibc_persist"
+    with pytest.raises(ValueError, match="leave it at 1"):
+        Config(algorithm="filtered_bc", reward="rule", done_persist=2)
     for select in ("random", "none"):
         with pytest.raises(ValueError, match="set rl.algorithm=filtered_bc"):
             Config(algorithm="ppo", fbc_select=select)

@@ -93,3 +93,7 @@ def test_the_guard_vetoes_an_imagined_success_it_does_not_confirm():
     assert (alone["imagined_done"], alone["imagined_and_replayed"], alone["precision"]) == (2, 0, 0.0)
     with pytest.raises(ValueError, match="head_probs"):
         precision_head_only([replay_row("a", head, -1, 0.5)], 0.5)
+    # a success held for 2 steps: the head and the guard together reach theta at 3 and 4 in b only
+    held = guarded_row("push/b", head, np.array([0.1, 0.3, 0.8, 0.9]), 3, 0.5, persist=2)
+    assert held.done_at == 4 and held.success and held.head_probs == rows[1].head_probs
+    assert precision_head_only([held], 0.5, persist=2)["imagined_done"] == 1  # the head alone holds from step 2: done at 3

@@ -19,11 +19,13 @@ def parts():
     return tok, wm, goals
 
 
-def _vec(parts, n=3, theta_done=0.999, max_steps=5, beta=0.01, payout_gamma=None, guard=None, dtype="fp32"):
+def _vec(parts, n=3, theta_done=0.999, max_steps=5, beta=0.01, payout_gamma=None, guard=None, dtype="fp32",
+         done_persist=1):
     tok, wm, (g3, gw) = parts
     reward = WMReward(GoalDistance(g3, gw), alpha=1.0, beta=beta, theta_sps=0.5, num_envs=n)
     return WorldModelVecEnv(wm, tok, obs_fn(tok), reward, starts_for(tok), num_envs=n, max_steps=max_steps,
-                            theta_done=theta_done, seed=0, payout_gamma=payout_gamma, guard=guard, dtype=dtype)
+                            theta_done=theta_done, seed=0, payout_gamma=payout_gamma, guard=guard, dtype=dtype,
+                            done_persist=done_persist)
 
 
 def test_gym_env_passes_sb3_check_env(parts):
@@ -50,6 +52,25 @@ def test_done_head_terminates_episodes(parts):
     env.reset()
     _, _, dones, infos = env.step(np.zeros((3, 7), np.float32))
     assert dones.all() and all(i["terminated_by_done_head"] and not i["TimeLimit.truncated"] for i in infos)
+
+
+def test_a_held_success_terminates_only_after_done_persist_steps_counted_afresh_each_episode(parts):
+    env = _vec(parts, theta_done=1e-6, max_steps=50, done_persist=3)  # the head is always above theta here
+    env.reset()
+    ends = []
+    for t in range(1, 7):
+        _, _, dones, infos = env.step(np.zeros((3, 7), np.float32))
+        if dones.any():
+            assert dones.all() and all(i["terminated_by_done_head"] for i in infos)
+            ends.append(t)
+    assert ends == [3, 6] and env.stats["terminated"] == 6  # a restarted episode holds its own count
+    held = _vec(parts, theta_done=0.999, max_steps=4, done_persist=2)  # never above theta: truncated as before
+    held.reset()
+    for _ in range(4):
+        _, _, dones, infos = held.step(np.zeros((3, 7), np.float32))
+    assert dones.all() and all(i["TimeLimit.truncated"] for i in infos) and held.stats["terminated"] == 0
+    with pytest.raises(ValueError, match="done_persist"):
+        _vec(parts, done_persist=0)
 
 
 def test_a_success_is_paid_the_maximum_for_its_step_and_the_steps_left(parts):
