@@ -132,6 +132,10 @@ def main() -> None:
                                       sft=sft or args.sft, counts=counts)
     chosen = pick(sides["method"].rows, sides["baseline"].rows, args.per_way, args.same)
     states = [s for kind in KINDS for s in chosen[kind]]
+    from stages.rl import read_rl_facts
+
+    for s in sides.values():  # evaluate_sft.py files every rl policy as "ppo": title it by the rl stage's method
+        s.title = s.label if s.rl is None else read_rl_facts(s.rl)["method"]
     print(", ".join(f"{kind} {len(chosen[kind])}" for kind in KINDS) + f" states of {args.method.name} vs {args.baseline.name}")
     if not states:
         print("nothing to show")
@@ -173,7 +177,7 @@ def write(args, sides: dict, chosen: dict, rerun: dict) -> None:
                     mismatches.append(f"{side} {s}: file {mark[filed[side][s]]}, rerun {mark[bool(r['success'])]}")
                 frames = r["frames"]  # (control steps+1, H, W, 3) uint8
                 picks = np.linspace(0, len(frames) - 1, args.frames).round().astype(int)
-                rows.append((f"{side} ({sides[side].label}): {mark[bool(r['success'])]} in {r['steps']} steps", frames[picks]))
+                rows.append((f"{side} ({sides[side].title}): {mark[bool(r['success'])]} in {r['steps']} steps", frames[picks]))
             task, split, scene, seed = s
             name = f"{kind}_{task}_{split}_{scene}_{seed}.png"
             strip_figure(rows, args.out / name, f"{task}, {split}, scene {scene}, seed {seed}")
