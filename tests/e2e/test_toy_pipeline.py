@@ -213,6 +213,13 @@ def test_filtered_bcs_controls_play_the_same_episodes_and_imitate_random_ones_or
     assert none["select"] == "none" and none["successes"] == wins
     assert none["picked_episodes"] == none["imitated_episodes"] == none["own_pairs"] == 0
     assert none["demonstration_pairs"] == chosen["demonstration_pairs"] and none["epochs"] == chosen["epochs"]
+    # a success that must hold for 3 imagined steps: no episode ends as one sooner
+    held = [*base, "--set", "rl.done_persist=3"]
+    cli(store, "run", "--profile", "toy", "--until", "rl", *held)
+    rl = shown(store, "rl", *held)
+    assert json.loads((rl / "rl.json").read_text())["method"] == "wm_fbc_persist"
+    ended = [e for e in json.loads((rl / "episodes.json").read_text()) if e["terminated"]]
+    assert all(e["length"] >= 3 for e in ended)
 
 
 def test_a_policy_reading_both_frames_plays_learns_in_the_world_model_and_is_evaluated(store):
