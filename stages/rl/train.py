@@ -80,7 +80,10 @@ def train(ctx, cfg, inp) -> dict:
     else:
         starts = inp.starts(ppo_envs or envs, any_frame=cfg.branch_horizon > 0)  # no task kept: never stepped
         metrics["ppo/start_states"] = len(starts)
-        raw_env = WorldModelVecEnv(inp.wm, inp.tok, inp.obs_fn, chosen.build(parts, cfg, cfg.num_envs),
+        # filtered BC reads only which episodes the done head ends: its play pays the sparse term alone, so the
+        # environment decodes no frame (the decoder costs about as much as the world model's step)
+        paid = cfg.model_copy(update={"beta": 0.0}) if cfg.algorithm == "filtered_bc" else cfg
+        raw_env = WorldModelVecEnv(inp.wm, inp.tok, inp.obs_fn, chosen.build(parts, paid, cfg.num_envs),
                                    starts, num_envs=cfg.num_envs, max_steps=cfg.branch_horizon or cfg.max_episode_steps,
                                    theta_done=cfg.theta_done, seed=cfg.seed, device=inp.device,
                                    payout_gamma=payout_gamma, guard=guard, dtype=cfg.wm_dtype,

@@ -200,6 +200,9 @@ def test_filtered_bcs_controls_play_the_same_episodes_and_imitate_random_ones_or
     fields = ("t", "start", "length", "success", "env")
     played = {k: [{f: e[f] for f in fields} for e in json.loads((d / "episodes.json").read_text())] for k, d in runs.items()}
     assert played["success"] == played["random"] == played["none"] and played["success"]  # the same seed, the same play
+    # play in the world model pays the done head's success alone (no frame decoded): a failure earns nothing
+    episodes = json.loads((runs["success"] / "episodes.json").read_text())
+    assert all(e["return"] == 0 for e in episodes if not e["success"])
     chosen, drawn, none = (json.loads((runs[k] / "filtered_bc.json").read_text())["rounds"][0] for k in runs)
     wins = sum(e["success"] for e in played["success"])
     assert chosen["picked_episodes"] == chosen["picked_successes"] == chosen["successes"] == wins
