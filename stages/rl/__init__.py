@@ -287,6 +287,9 @@ class Config(BaseModel):
         if self.done_persist > 1 and self.reward == "rule":
             raise ValueError(f"done_persist={self.done_persist} holds the world model's done head for several steps; "
                              "reward rule trains in ManiSkill, whose success check has no done head: leave it at 1")
+        if self.done_persist > self.max_episode_steps:
+            raise ValueError(f"done_persist={self.done_persist} > max_episode_steps={self.max_episode_steps}: an episode "
+                             "truncates before the done head can hold that long, so none would end as a success")
         if self.algorithm == "filtered_bc" and self.guard_replay_rounds:
             raise ValueError("guard_replay_rounds refits the guard during PPO; algorithm filtered_bc runs no PPO: set it to 0")
         return self

@@ -99,6 +99,9 @@ def test_filtered_bc_is_named_and_checked_by_its_config():
     assert method_of("wm", "success", calibration_ratio=0.5, imagined_bc_epochs=20, done_persist=2) == "wm_gated_ibc_persist"
     with pytest.raises(ValueError, match="leave it at 1"):
         Config(algorithm="filtered_bc", reward="rule", done_persist=2)
+    with pytest.raises(ValueError, match="none would end as a success"):
+        Config(algorithm="filtered_bc", reward="wm", done_persist=16, max_episode_steps=15)
+    assert Config(algorithm="filtered_bc", reward="wm", done_persist=15, max_episode_steps=15).done_persist == 15
     for select in ("random", "none"):
         with pytest.raises(ValueError, match="set rl.algorithm=filtered_bc"):
             Config(algorithm="ppo", fbc_select=select)
